@@ -1,0 +1,301 @@
+"""Rig configuration: TOML -> frozen dataclasses, validated on load.
+
+Every error names the file, the field and what was expected (``drivers.errors.ConfigError``). The
+default simulated rig ships in ``rig/data/default_rig.toml`` so that ``rig demo`` needs no user files.
+"""
+from __future__ import annotations
+
+import tomllib
+from dataclasses import asdict, dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from drivers.errors import ConfigError
+
+DEFAULT_RIG = "default_rig.toml"
+
+# Jensen et al. 2001 Table 2 (pbrt's units: 1/mm, reduced sigma_s'); see shared science.md section 2.
+MATERIALS: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] = {
+    "apple": ((2.29, 2.39, 1.97), (0.0030, 0.0034, 0.046)),
+    "chicken1": ((0.15, 0.21, 0.38), (0.015, 0.077, 0.19)),
+    "chicken2": ((0.19, 0.25, 0.32), (0.018, 0.088, 0.20)),
+    "cream": ((7.38, 5.47, 3.15), (0.0002, 0.0028, 0.0163)),
+    "ketchup": ((0.18, 0.07, 0.03), (0.061, 0.97, 1.45)),
+    "marble": ((2.19, 2.62, 3.00), (0.0021, 0.0041, 0.0071)),
+    "potato": ((0.68, 0.70, 0.55), (0.0024, 0.0090, 0.12)),
+    "skimmilk": ((0.70, 1.22, 1.90), (0.0014, 0.0025, 0.0142)),
+    "skin1": ((0.74, 0.88, 1.01), (0.032, 0.17, 0.48)),
+    "skin2": ((1.09, 1.59, 1.79), (0.013, 0.070, 0.145)),
+    "wholemilk": ((2.55, 3.21, 3.77), (0.0011, 0.0024, 0.014)),
+}
+
+SPHERE_DRIVERS = ("serial", "modbus-tcp", "modbus-rtu")
+TRIGGER_DRIVERS = ("esper",)
+CAMERA_DRIVERS = ("folder",)
+STATION_DRIVERS = ("geocom",)
+Vec3 = tuple[float, float, float]
+
+
+@dataclass(frozen=True)
+class SphereConfig:
+    driver: str
+    url: str
+    radius_mm: float
+    geodesic_frequency: int
+    min_elevation_deg: float
+    led_intensity: Vec3
+    led_current_a_per_channel: float
+    max_total_current_a: float
+    max_mean_duty: float
+    slots: int
+    watchdog_s: float
+    settle_s: float
+    pattern_peak: float
+
+
+@dataclass(frozen=True)
+class TriggerConfig:
+    driver: str
+    url: str
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    driver: str
+    folder: str
+    width_px: int
+    height_px: int
+    fx_px: float
+    position_mm: Vec3
+    look_at_mm: Vec3
+    up: Vec3
+    exposure_s: float
+    gain_dn_per_unit: float
+    black_level_dn: int
+    white_level_dn: int
+    read_noise_dn: float
+    electrons_per_dn: float
+    fetch_timeout_s: float
+
+
+@dataclass(frozen=True)
+class StationConfig:
+    driver: str
+    url: str
+    station_xyz_mm: Vec3
+    station_yaw_deg: float
+    noise_mm: float
+
+
+@dataclass(frozen=True)
+class Target:
+    name: str
+    xyz_mm: Vec3
+
+
+@dataclass(frozen=True)
+class SceneConfig:
+    shape: str
+    radius_mm: float
+    center_mm: Vec3
+    material: str
+    sigma_s_prime_per_mm: Vec3
+    sigma_a_per_mm: Vec3
+    eta: float
+    tessellation: int
+    seed: int
+
+
+@dataclass(frozen=True)
+class EstimationConfig:
+    key_light_direction: Vec3
+    single_image_method: str
+    single_image_subdivisions: int
+    eta: float
+
+
+@dataclass(frozen=True)
+class RigConfig:
+    name: str
+    sphere: SphereConfig
+    trigger: TriggerConfig
+    camera: CameraConfig
+    total_station: StationConfig
+    targets: tuple[Target, ...]
+    scene: SceneConfig
+    estimation: EstimationConfig
+    source: str = field(default="<memory>", compare=False)
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d.pop("source")
+        return d
+
+
+class _Reader:
+    """Typed field access with errors that name the file and the dotted field."""
+
+    def __init__(self, file: str, data: dict[str, Any], prefix: str = "") -> None:
+        self.file, self.data, self.prefix = file, data, prefix
+
+    def _name(self, key: str) -> str:
+        return f"{self.prefix}{key}"
+
+    def section(self, key: str) -> "_Reader":
+        value = self.data.get(key)
+        if not isinstance(value, dict):
+            raise ConfigError(self.file, self._name(key), "a table [" + self._name(key) + "]",
+                              None if value is None else type(value).__name__)
+        return _Reader(self.file, value, self._name(key) + ".")
+
+    def _get(self, key: str, default: Any) -> Any:
+        if key in self.data:
+            return self.data[key]
+        if default is _REQUIRED:
+            raise ConfigError(self.file, self._name(key), "a value (field is missing)")
+        return default
+
+    def str(self, key: str, default: Any = None, choices: tuple[str, ...] | None = None) -> str:
+        v = self._get(key, _REQUIRED if default is None else default)
+        if not isinstance(v, str):
+            raise ConfigError(self.file, self._name(key), "a string", v)
+        if choices is not None and v not in choices:
+            raise ConfigError(self.file, self._name(key), "one of " + ", ".join(choices), v)
+        return v
+
+    def num(self, key: str, default: Any = None, *, lo: float | None = None, hi: float | None = None,
+            positive: bool = False) -> float:
+        v = self._get(key, _REQUIRED if default is None else default)
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise ConfigError(self.file, self._name(key), "a number", v)
+        v = float(v)
+        if v != v or v in (float("inf"), float("-inf")):
+            raise ConfigError(self.file, self._name(key), "a finite number", v)
+        if positive and v <= 0:
+            raise ConfigError(self.file, self._name(key), "a number > 0", v)
+        if lo is not None and v < lo:
+            raise ConfigError(self.file, self._name(key), f"a number >= {lo}", v)
+        if hi is not None and v > hi:
+            raise ConfigError(self.file, self._name(key), f"a number <= {hi}", v)
+        return v
+
+    def int(self, key: str, default: Any = None, *, lo: int | None = None, hi: int | None = None) -> int:
+        v = self._get(key, _REQUIRED if default is None else default)
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise ConfigError(self.file, self._name(key), "an integer", v)
+        if (lo is not None and v < lo) or (hi is not None and v > hi):
+            raise ConfigError(self.file, self._name(key), f"an integer in [{lo}, {hi}]", v)
+        return v
+
+    def vec3(self, key: str, default: Any = None, *, positive: bool = False,
+             nonneg: bool = False) -> Vec3:
+        v = self._get(key, _REQUIRED if default is None else default)
+        ok = (isinstance(v, (list, tuple)) and len(v) == 3
+              and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in v))
+        if not ok:
+            raise ConfigError(self.file, self._name(key), "a list of 3 numbers", v)
+        if positive and any(x <= 0 for x in v):
+            raise ConfigError(self.file, self._name(key), "3 numbers > 0", v)
+        if nonneg and any(x < 0 for x in v):
+            raise ConfigError(self.file, self._name(key), "3 numbers >= 0", v)
+        return (float(v[0]), float(v[1]), float(v[2]))
+
+
+_REQUIRED = object()
+
+
+def parse_config(data: dict[str, Any], file: str = "<memory>") -> RigConfig:
+    """Validate a parsed TOML document; raise :class:`ConfigError` naming the first bad field."""
+    top = _Reader(file, data)
+    s = top.section("sphere")
+    sphere = SphereConfig(
+        driver=s.str("driver", choices=SPHERE_DRIVERS), url=s.str("url"),
+        radius_mm=s.num("radius_mm", positive=True),
+        geodesic_frequency=s.int("geodesic_frequency", lo=1, hi=40),
+        min_elevation_deg=s.num("min_elevation_deg", -90.0, lo=-90.0, hi=90.0),
+        led_intensity=s.vec3("led_intensity", positive=True),
+        led_current_a_per_channel=s.num("led_current_a_per_channel", positive=True),
+        max_total_current_a=s.num("max_total_current_a", positive=True),
+        max_mean_duty=s.num("max_mean_duty", lo=0.0, hi=1.0, positive=True),
+        slots=s.int("slots", 16, lo=1, hi=255), watchdog_s=s.num("watchdog_s", 5.0, lo=0.0, hi=60.0),
+        settle_s=s.num("settle_s", 0.0, lo=0.0, hi=10.0),
+        pattern_peak=s.num("pattern_peak", 1.0, lo=0.0, hi=1.0, positive=True))
+    t = top.section("trigger")
+    trigger = TriggerConfig(driver=t.str("driver", choices=TRIGGER_DRIVERS), url=t.str("url"))
+    c = top.section("camera")
+    camera = CameraConfig(
+        driver=c.str("driver", choices=CAMERA_DRIVERS), folder=c.str("folder"),
+        width_px=c.int("width_px", lo=8, hi=20000), height_px=c.int("height_px", lo=8, hi=20000),
+        fx_px=c.num("fx_px", positive=True), position_mm=c.vec3("position_mm"),
+        look_at_mm=c.vec3("look_at_mm"), up=c.vec3("up", (0.0, 0.0, 1.0)),
+        exposure_s=c.num("exposure_s", lo=1e-6, hi=60.0),
+        gain_dn_per_unit=c.num("gain_dn_per_unit", positive=True),
+        black_level_dn=c.int("black_level_dn", lo=0, hi=65535),
+        white_level_dn=c.int("white_level_dn", lo=1, hi=65535),
+        read_noise_dn=c.num("read_noise_dn", 0.0, lo=0.0),
+        electrons_per_dn=c.num("electrons_per_dn", 1.0, positive=True),
+        fetch_timeout_s=c.num("fetch_timeout_s", 30.0, positive=True))
+    if camera.white_level_dn <= camera.black_level_dn:
+        raise ConfigError(file, "camera.white_level_dn", "a value above camera.black_level_dn",
+                          camera.white_level_dn)
+    g = top.section("total_station")
+    station = StationConfig(
+        driver=g.str("driver", choices=STATION_DRIVERS), url=g.str("url"),
+        station_xyz_mm=g.vec3("station_xyz_mm"), station_yaw_deg=g.num("station_yaw_deg", 0.0),
+        noise_mm=g.num("noise_mm", 0.0, lo=0.0))
+    raw_targets = data.get("targets", [])
+    if not isinstance(raw_targets, list):
+        raise ConfigError(file, "targets", "an array of tables [[targets]]", type(raw_targets).__name__)
+    targets = []
+    for i, item in enumerate(raw_targets):
+        if not isinstance(item, dict):
+            raise ConfigError(file, f"targets[{i}]", "a table with name and xyz_mm", item)
+        r = _Reader(file, item, f"targets[{i}].")
+        targets.append(Target(r.str("name"), r.vec3("xyz_mm")))
+    names = [tg.name for tg in targets]
+    if len(set(names)) != len(names):
+        raise ConfigError(file, "targets", "unique target names", names)
+    sc = top.section("scene")
+    material = sc.str("material", "custom")
+    if material != "custom" and material not in MATERIALS:
+        raise ConfigError(file, "scene.material", "one of custom, " + ", ".join(MATERIALS), material)
+    default_s, default_a = MATERIALS.get(material, (None, None))
+    scene = SceneConfig(
+        shape=sc.str("shape", choices=("sphere",)), radius_mm=sc.num("radius_mm", positive=True),
+        center_mm=sc.vec3("center_mm", (0.0, 0.0, 0.0)), material=material,
+        sigma_s_prime_per_mm=sc.vec3("sigma_s_prime_per_mm", default_s, positive=True),
+        sigma_a_per_mm=sc.vec3("sigma_a_per_mm", default_a, nonneg=True),
+        eta=sc.num("eta", 1.3, lo=1.0, hi=3.0), tessellation=sc.int("tessellation", 4, lo=1, hi=7),
+        seed=sc.int("seed", 0, lo=0))
+    e = top.section("estimation")
+    estimation = EstimationConfig(
+        key_light_direction=e.vec3("key_light_direction"),
+        single_image_method=e.str("single_image_method", "direct"),
+        single_image_subdivisions=e.int("single_image_subdivisions", 3, lo=1, hi=6),
+        eta=e.num("eta", 1.3, lo=1.0, hi=3.0))
+    name = top.section("rig").str("name")
+    return RigConfig(name, sphere, trigger, camera, station, tuple(targets), scene, estimation, file)
+
+
+def load_config(path: str | Path | None = None) -> RigConfig:
+    """Load and validate a rig config; ``None`` loads the packaged default simulated rig."""
+    if path is None:
+        text = resources.files("rig.data").joinpath(DEFAULT_RIG).read_text()
+        file = f"<package>/rig/data/{DEFAULT_RIG}"
+    else:
+        p = Path(path)
+        file = str(p)
+        try:
+            text = p.read_text()
+        except OSError as exc:
+            raise ConfigError(file, "<file>", "a readable TOML file", str(exc)) from exc
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(file, "<syntax>", "valid TOML", str(exc)) from exc
+    return parse_config(data, file)
+
+
+def default_config_text() -> str:
+    return resources.files("rig.data").joinpath(DEFAULT_RIG).read_text()

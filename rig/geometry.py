@@ -1,0 +1,52 @@
+"""LED-sphere layouts: class-I geodesic subdivision of an icosahedron (10 f^2 + 2 vertices)."""
+from __future__ import annotations
+
+import numpy as np
+import numpy.typing as npt
+
+
+def _icosahedron() -> tuple[np.ndarray, np.ndarray]:
+    t = (1.0 + 5 ** 0.5) / 2.0
+    v = np.array([[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t], [0, -1, -t],
+                  [0, 1, -t], [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]], float)
+    f = np.array([[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4],
+                  [11, 10, 2], [10, 7, 6], [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8],
+                  [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10], [8, 6, 7], [9, 8, 1]])
+    return v / np.linalg.norm(v, axis=1, keepdims=True), f
+
+
+def geodesic_directions(frequency: int) -> npt.NDArray[np.float64]:
+    """Unit vectors of a class-I geodesic sphere of the given frequency (10 f^2 + 2 points)."""
+    if frequency < 1:
+        raise ValueError(f"geodesic frequency must be >= 1, got {frequency}")
+    v, faces = _icosahedron()
+    pts = []
+    for a, b, c in faces:
+        for i in range(frequency + 1):
+            for j in range(frequency + 1 - i):
+                k = frequency - i - j
+                pts.append((i * v[a] + j * v[b] + k * v[c]) / frequency)
+    p = np.asarray(pts)
+    p /= np.linalg.norm(p, axis=1, keepdims=True)
+    # merge the points shared by neighbouring faces
+    key = np.round(p * 1e6).astype(np.int64)
+    _, idx = np.unique(key, axis=0, return_index=True)
+    out = p[np.sort(idx)]
+    expected = 10 * frequency ** 2 + 2
+    if len(out) != expected:  # pragma: no cover - a geometry bug, not user input
+        raise RuntimeError(f"geodesic frequency {frequency}: {len(out)} points, expected {expected}")
+    return out
+
+
+def led_layout(frequency: int, radius_mm: float, min_elevation_deg: float = -90.0
+               ) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """LED positions (N, 3) in mm and unit directions (N, 3) from the sphere centre, ordered by index.
+
+    LEDs below ``min_elevation_deg`` (floor, camera stand) are left out.
+    """
+    d = geodesic_directions(frequency)
+    keep = d[:, 2] >= np.sin(np.radians(min_elevation_deg)) - 1e-12
+    d = d[keep]
+    order = np.lexsort((np.arctan2(d[:, 1], d[:, 0]), -d[:, 2]))  # top to bottom, then by azimuth
+    d = d[order]
+    return d * radius_mm, d

@@ -1,0 +1,115 @@
+"""The simulated camera: renders the virtual scene under the sphere's current light and drops a DNG.
+
+It listens to the LED-sphere simulator (``on_light_change``) and the trigger simulator (``on_fire``). On
+each fire it snapshots the light state (what the sensor integrates during the exposure), then renders in a
+worker thread and writes ``frame_NNNNN.dng`` atomically into ``drop_folder``, as tethering software would:
+the folder-watching camera driver picks it up. Noise: Poisson photon noise (``electrons_per_dn``) plus
+Gaussian read noise, on each photosite of an RGGB mosaic; 14-bit DNG with a black level.
+"""
+from __future__ import annotations
+
+import queue
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import numpy.typing as npt
+
+from drivers.contracts import Polarization
+from estimation.camera import PinholeCamera
+
+from .dng import write_cfa_dng
+from .scene import SphereObject, render
+
+
+@dataclass(frozen=True)
+class SensorModel:
+    gain_dn_per_unit: float      # DN per (radiance unit x second)
+    black_level_dn: int
+    white_level_dn: int
+    read_noise_dn: float
+    electrons_per_dn: float
+
+
+def mosaic_rggb(rgb: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """(H, W, 3) -> (2H, 2W) RGGB mosaic (each RGB pixel becomes one 2x2 CFA cell)."""
+    h, w, _ = rgb.shape
+    m = np.empty((2 * h, 2 * w))
+    m[0::2, 0::2] = rgb[..., 0]
+    m[0::2, 1::2] = rgb[..., 1]
+    m[1::2, 0::2] = rgb[..., 1]
+    m[1::2, 1::2] = rgb[..., 2]
+    return m
+
+
+def expose(radiance: npt.NDArray[np.float64], exposure_s: float, sensor: SensorModel,
+           rng: np.random.Generator) -> npt.NDArray[np.uint16]:
+    """Radiance image (H, W, 3) -> noisy raw mosaic (2H, 2W) in DN, clipped at the white level."""
+    signal_dn = mosaic_rggb(radiance) * sensor.gain_dn_per_unit * exposure_s
+    electrons = rng.poisson(np.maximum(signal_dn, 0.0) * sensor.electrons_per_dn)
+    dn = electrons / sensor.electrons_per_dn + rng.normal(0.0, sensor.read_noise_dn, signal_dn.shape)
+    dn = np.round(dn + sensor.black_level_dn)
+    return np.clip(dn, 0, sensor.white_level_dn).astype(np.uint16)
+
+
+class SimulatedCamera:
+    """Couples the LED and trigger simulators to a renderer and a drop folder."""
+
+    def __init__(self, obj: SphereObject, camera: PinholeCamera, led_positions_mm: npt.ArrayLike,
+                 led_intensity: npt.ArrayLike, drop_folder: str | Path, sensor: SensorModel,
+                 *, seed: int = 0) -> None:
+        self.obj = obj
+        self.camera = camera
+        self.led_positions_mm = np.asarray(led_positions_mm, float)
+        self.led_intensity = np.asarray(led_intensity, float)
+        self.drop_folder = Path(drop_folder)
+        self.drop_folder.mkdir(parents=True, exist_ok=True)
+        self.sensor = sensor
+        self.rng = np.random.default_rng(seed)
+        self._emission = np.zeros((len(self.led_positions_mm), 3))
+        self._polarization = Polarization.NONE
+        self._lock = threading.Lock()
+        self._count = 0
+        self._jobs: queue.Queue = queue.Queue()
+        self._worker = threading.Thread(target=self._work, name="simcam", daemon=True)
+        self._worker.start()
+
+    # --- callbacks from the other simulators -------------------------------------------------
+    def on_light_change(self, led_rgb: npt.ArrayLike, polarization: Polarization) -> None:
+        with self._lock:
+            self._emission = np.asarray(led_rgb, float) * self.led_intensity
+            self._polarization = Polarization(polarization)
+
+    def on_fire(self, exposure_s: float) -> None:
+        with self._lock:
+            job = (self._count, self._emission.copy(), self._polarization, float(exposure_s))
+            self._count += 1
+        self._jobs.put(job)
+
+    # --- rendering -----------------------------------------------------------------------------
+    def render_raw(self, emission: npt.ArrayLike, polarization: Polarization, exposure_s: float
+                   ) -> npt.NDArray[np.uint16]:
+        res = render(self.obj, self.camera, self.led_positions_mm, np.asarray(emission, float),
+                     polarization)
+        return expose(res.radiance, exposure_s, self.sensor, self.rng)
+
+    def _work(self) -> None:
+        while True:
+            job = self._jobs.get()
+            if job is None:
+                return
+            index, emission, pol, exposure_s = job
+            try:
+                raw = self.render_raw(emission, pol, exposure_s)
+                write_cfa_dng(self.drop_folder / f"frame_{index:05d}.dng", raw,
+                              black_level=self.sensor.black_level_dn,
+                              white_level=self.sensor.white_level_dn, exposure_s=exposure_s)
+            except Exception as exc:  # pragma: no cover - surfaced to the driver as a missing frame
+                (self.drop_folder / f"frame_{index:05d}.error.txt").write_text(repr(exc))
+            finally:
+                self._jobs.task_done()
+
+    def close(self) -> None:
+        self._jobs.put(None)
+        self._worker.join(timeout=60)
