@@ -107,6 +107,7 @@ class Session:
     @classmethod
     def create(cls, parent: str | Path, name: str, *, config: dict[str, Any],
                devices: dict[str, Any], plan: list[dict[str, Any]],
+               geometry: dict[str, Any] | None = None,
                truth: dict[str, Any] | None = None) -> "Session":
         validate_session_name(name)
         parent = Path(parent)
@@ -121,8 +122,10 @@ class Session:
         (root / "estimates").mkdir()
         manifest = {"format": "sssrig-session", "format_version": FORMAT_VERSION, "name": name,
                     "created": now_iso(), "software_version": software_version(),
-                    "config": config, "devices": devices, "plan": plan, "truth": truth}
-        atomic_write_bytes(root / "manifest.json", json.dumps(manifest, indent=2).encode())
+                    "config": config, "devices": devices, "plan": plan, "geometry": geometry,
+                    "truth": truth}
+        atomic_write_bytes(root / "manifest.json",
+                           json.dumps(manifest, indent=2, default=_json_default).encode())
         s = cls(root)
         s.append_event({"type": "start"})
         return s

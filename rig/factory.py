@@ -1,0 +1,140 @@
+"""Config -> devices. A device whose URL is ``sim`` gets its simulator started on a real transport
+(the LED sphere and the trigger box on ptys, the total station on loopback TCP) and its driver then talks
+to it over the wire exactly as it would to hardware."""
+from __future__ import annotations
+
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from drivers.camera.folder import FolderCamera
+from drivers.led_sphere.driver import open_led_sphere_serial
+from drivers.total_station.driver import open_total_station
+from drivers.trigger.esper import open_esper_trigger
+from estimation.camera import PinholeCamera
+
+from .config import RigConfig
+from .geometry import led_layout
+from .patterns import nearest_led
+from .runner import Devices
+
+
+@dataclass
+class RigGeometry:
+    led_positions_mm: np.ndarray
+    led_directions: np.ndarray
+    camera: PinholeCamera
+    key_led: int
+    targets: dict[str, tuple[float, float, float]]
+
+
+def rig_geometry(config: RigConfig) -> RigGeometry:
+    s, c = config.sphere, config.camera
+    pos, dirs = led_layout(s.geodesic_frequency, s.radius_mm, s.min_elevation_deg)
+    cam = PinholeCamera.looking_at(width_px=c.width_px, height_px=c.height_px, fx_px=c.fx_px,
+                                   position_mm=c.position_mm, target_mm=c.look_at_mm, up=c.up)
+    key = nearest_led(dirs, config.estimation.key_light_direction)
+    targets = {t.name: t.xyz_mm for t in config.targets}
+    targets["key_led"] = tuple(float(v) for v in pos[key])
+    return RigGeometry(pos, dirs, cam, key, targets)
+
+
+@dataclass
+class SimulatedRig:
+    """The simulators of one rig, running on real transports."""
+
+    urls: dict[str, str]
+    drop_folder: Path
+    truth: dict[str, Any]
+    _closers: list[Any] = field(default_factory=list)
+
+    def close(self) -> None:
+        for c in reversed(self._closers):
+            try:
+                c.close()
+            except Exception:
+                pass
+
+
+def start_simulators(config: RigConfig, geometry: RigGeometry, workdir: Path | None = None
+                     ) -> SimulatedRig:
+    """Start every simulator the config asks for (URL ``sim``)."""
+    from simulators.camera import SensorModel, SimulatedCamera
+    from simulators.led_sphere import LedSphereModel
+    from simulators.scene import SphereObject
+    from simulators.serve import serve
+    from simulators.total_station import GeoComModel
+    from simulators.trigger import EsperTriggerModel
+
+    sc, cam = config.scene, config.camera
+    drop = Path(workdir or tempfile.mkdtemp(prefix="sssrig-simcam-")) / "drop"
+    obj = SphereObject(sc.center_mm, sc.radius_mm, sc.sigma_s_prime_per_mm, sc.sigma_a_per_mm, sc.eta,
+                       tessellation=sc.tessellation)
+    sensor = SensorModel(cam.gain_dn_per_unit, cam.black_level_dn, cam.white_level_dn,
+                         cam.read_noise_dn, cam.electrons_per_dn)
+    simcam = SimulatedCamera(obj, geometry.camera, geometry.led_positions_mm,
+                             config.sphere.led_intensity, drop, sensor, seed=sc.seed)
+    rig = SimulatedRig({}, drop, truth={
+        "shape": sc.shape, "radius_mm": sc.radius_mm, "center_mm": list(sc.center_mm),
+        "material": sc.material, "sigma_s_prime_per_mm": list(sc.sigma_s_prime_per_mm),
+        "sigma_a_per_mm": list(sc.sigma_a_per_mm), "eta": sc.eta})
+    rig._closers.append(simcam)
+    try:
+        if config.sphere.url == "sim":
+            model = LedSphereModel(led_count=len(geometry.led_positions_mm),
+                                   on_light_change=simcam.on_light_change)
+            srv = serve(model, "pty")
+            rig._closers.append(srv)
+            rig.urls["sphere"] = srv.url
+        if config.trigger.url == "sim":
+            srv = serve(EsperTriggerModel(on_fire=simcam.on_fire), "pty")
+            rig._closers.append(srv)
+            rig.urls["trigger"] = srv.url
+        if config.total_station.url == "sim":
+            targets = dict(geometry.targets)
+            gs = config.total_station
+            model = GeoComModel(targets, station_xyz_mm=gs.station_xyz_mm,
+                                station_yaw_deg=gs.station_yaw_deg, noise_mm=gs.noise_mm,
+                                seed=sc.seed)
+            srv = serve(model, "tcp://127.0.0.1:0")
+            rig._closers.append(srv)
+            rig.urls["total_station"] = srv.url
+        if cam.folder == "sim":
+            rig.urls["camera"] = str(drop)
+    except BaseException:
+        rig.close()
+        raise
+    return rig
+
+
+def open_devices(config: RigConfig, geometry: RigGeometry, sim: SimulatedRig | None = None
+                 ) -> Devices:
+    """Open every device's driver on its configured URL (or its simulator's)."""
+    urls = sim.urls if sim else {}
+    s = config.sphere
+    opened: list[Any] = []
+    try:
+        light = open_led_sphere_serial(urls.get("sphere", s.url),
+                                       max_total_current_a=s.max_total_current_a,
+                                       max_mean_duty=s.max_mean_duty,
+                                       led_current_a_per_channel=s.led_current_a_per_channel)
+        opened.append(light)
+        trigger = open_esper_trigger(urls.get("trigger", config.trigger.url))
+        opened.append(trigger)
+        camera = FolderCamera(urls.get("camera", config.camera.folder))
+        opened.append(camera)
+        ts = config.total_station
+        feed = open_total_station(urls.get("total_station", ts.url), station_xyz_mm=ts.station_xyz_mm,
+                                  station_yaw_deg=ts.station_yaw_deg, targets=geometry.targets)
+        opened.append(feed)
+    except BaseException:
+        for dev in opened:
+            try:
+                dev.close()
+            except Exception:
+                pass
+        raise
+    return Devices(light, trigger, camera, feed)
