@@ -71,6 +71,7 @@ class CameraConfig:
     look_at_mm: Vec3
     up: Vec3
     exposure_s: float
+    key_exposure_s: float
     gain_dn_per_unit: float
     black_level_dn: int
     white_level_dn: int
@@ -230,6 +231,7 @@ def parse_config(data: dict[str, Any], file: str = "<memory>") -> RigConfig:
         fx_px=c.num("fx_px", positive=True), position_mm=c.vec3("position_mm"),
         look_at_mm=c.vec3("look_at_mm"), up=c.vec3("up", (0.0, 0.0, 1.0)),
         exposure_s=c.num("exposure_s", lo=1e-6, hi=60.0),
+        key_exposure_s=c.num("key_exposure_s", c.data.get("exposure_s", 0.0), lo=1e-6, hi=60.0),
         gain_dn_per_unit=c.num("gain_dn_per_unit", positive=True),
         black_level_dn=c.int("black_level_dn", lo=0, hi=65535),
         white_level_dn=c.int("white_level_dn", lo=1, hi=65535),

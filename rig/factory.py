@@ -8,38 +8,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from drivers.camera.folder import FolderCamera
 from drivers.led_sphere.driver import open_led_sphere_serial
 from drivers.total_station.driver import open_total_station
 from drivers.trigger.esper import open_esper_trigger
-from estimation.camera import PinholeCamera
 
 from .config import RigConfig
-from .geometry import led_layout
-from .patterns import nearest_led
+from .geometry import RigGeometry, rig_geometry  # noqa: F401  (re-exported)
 from .runner import Devices
-
-
-@dataclass
-class RigGeometry:
-    led_positions_mm: np.ndarray
-    led_directions: np.ndarray
-    camera: PinholeCamera
-    key_led: int
-    targets: dict[str, tuple[float, float, float]]
-
-
-def rig_geometry(config: RigConfig) -> RigGeometry:
-    s, c = config.sphere, config.camera
-    pos, dirs = led_layout(s.geodesic_frequency, s.radius_mm, s.min_elevation_deg)
-    cam = PinholeCamera.looking_at(width_px=c.width_px, height_px=c.height_px, fx_px=c.fx_px,
-                                   position_mm=c.position_mm, target_mm=c.look_at_mm, up=c.up)
-    key = nearest_led(dirs, config.estimation.key_light_direction)
-    targets = {t.name: t.xyz_mm for t in config.targets}
-    targets["key_led"] = tuple(float(v) for v in pos[key])
-    return RigGeometry(pos, dirs, cam, key, targets)
 
 
 @dataclass

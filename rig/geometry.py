@@ -1,8 +1,16 @@
 """LED-sphere layouts: class-I geodesic subdivision of an icosahedron (10 f^2 + 2 vertices)."""
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
 import numpy as np
 import numpy.typing as npt
+
+from estimation.camera import PinholeCamera
+
+if TYPE_CHECKING:
+    from .config import RigConfig
 
 
 def _icosahedron() -> tuple[np.ndarray, np.ndarray]:
@@ -50,3 +58,24 @@ def led_layout(frequency: int, radius_mm: float, min_elevation_deg: float = -90.
     order = np.lexsort((np.arctan2(d[:, 1], d[:, 0]), -d[:, 2]))  # top to bottom, then by azimuth
     d = d[order]
     return d * radius_mm, d
+
+
+@dataclass
+class RigGeometry:
+    led_positions_mm: np.ndarray
+    led_directions: np.ndarray
+    camera: PinholeCamera
+    key_led: int
+    targets: dict[str, tuple[float, float, float]]
+
+
+def rig_geometry(config: "RigConfig") -> RigGeometry:
+    s, c = config.sphere, config.camera
+    pos, dirs = led_layout(s.geodesic_frequency, s.radius_mm, s.min_elevation_deg)
+    cam = PinholeCamera.looking_at(width_px=c.width_px, height_px=c.height_px, fx_px=c.fx_px,
+                                   position_mm=c.position_mm, target_mm=c.look_at_mm, up=c.up)
+    from .patterns import nearest_led
+    key = nearest_led(dirs, config.estimation.key_light_direction)
+    targets = {t.name: t.xyz_mm for t in config.targets}
+    targets["key_led"] = tuple(float(v) for v in pos[key])
+    return RigGeometry(pos, dirs, cam, key, targets)

@@ -60,7 +60,8 @@ def build_plan(config: RigConfig, led_directions, *, estimate: tuple[str, ...] =
         why = {"full": "constant pattern: diffuse albedo and the gradients' denominator",
                "key": "one LED as a surveyed point light: the single-image method's input"}.get(
             name, f"spherical-gradient pattern '{name}': diffuse normals (Ma et al. 2007)")
-        add("capture", why, pattern=name, slot=slot, polarization="cross", exposure_s=exposure)
+        add("capture", why, pattern=name, slot=slot, polarization="cross",
+            exposure_s=config.camera.key_exposure_s if name == "key" else exposure)
     add("all_off", "leave the sphere dark")
     return steps
 

@@ -1,0 +1,120 @@
+"""The ``rig`` command line."""
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import time
+from pathlib import Path
+
+from drivers.errors import RigError
+
+from .config import default_config_text, load_config
+
+
+def _add_config(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", type=Path, default=None,
+                   help="rig config TOML (default: the packaged simulated rig)")
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from .demo import format_table, run_demo
+    result = run_demo(config_path=args.config, sessions_dir=args.sessions, name=args.name,
+                      log=None if args.json else (lambda m: print(m, file=sys.stderr, flush=True)))
+    if args.json:
+        print(json.dumps(result, indent=2))
+    else:
+        print(format_table(result))
+    return 0
+
+
+def _cmd_sim(args: argparse.Namespace) -> int:
+    from .factory import rig_geometry, start_simulators
+    cfg = load_config(args.config)
+    sim = start_simulators(cfg, rig_geometry(cfg))
+    try:
+        for role, url in sim.urls.items():
+            print(f"{role:<14} {url}", flush=True)
+        print("simulators running; Ctrl-C to stop", file=sys.stderr, flush=True)
+        stop = []
+        signal.signal(signal.SIGTERM, lambda *a: stop.append(1))
+        deadline = time.monotonic() + args.seconds if args.seconds else None
+        while not stop and (deadline is None or time.monotonic() < deadline):
+            time.sleep(0.2)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        sim.close()
+    return 0
+
+
+def _cmd_plan(args: argparse.Namespace) -> int:
+    from .geometry import rig_geometry
+    from .plan import build_plan, summarize
+    cfg = load_config(args.config)
+    geo = rig_geometry(cfg)
+    steps = build_plan(cfg, geo.led_directions, estimate=tuple(args.estimate),
+                       complements=args.complements)
+    if args.json:
+        print(json.dumps([s.to_dict() for s in steps], indent=2))
+    else:
+        print(summarize(steps))
+    return 0
+
+
+def _cmd_config(args: argparse.Namespace) -> int:
+    if args.check:
+        cfg = load_config(args.check)
+        print(f"{args.check}: valid rig config '{cfg.name}'")
+    else:
+        print(default_config_text(), end="")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="rig", description="sssrig: light-stage acquisition and subsurface-scattering estimation")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = sub.add_parser("demo", help="simulated capture session + estimates vs truth")
+    _add_config(p)
+    p.add_argument("--sessions", type=Path, default=Path("sessions"), help="folder for session folders")
+    p.add_argument("--name", default=None, help="session name (default: demo-<timestamp>)")
+    p.add_argument("--json", action="store_true", help="print the result as JSON")
+    p.set_defaults(func=_cmd_demo)
+
+    p = sub.add_parser("sim", help="start the simulated devices, print their URLs")
+    _add_config(p)
+    p.add_argument("--seconds", type=float, default=0.0, help="stop after this long (0: until Ctrl-C)")
+    p.set_defaults(func=_cmd_sim)
+
+    p = sub.add_parser("plan", help="print a capture plan (dry run, no devices)")
+    _add_config(p)
+    p.add_argument("--estimate", nargs="+", default=["gradients", "single-image"],
+                   choices=["gradients", "single-image"], help="what to estimate")
+    p.add_argument("--complements", action="store_true", help="use complement gradients, no full-on")
+    p.add_argument("--dry-run", action="store_true", help="accepted for clarity; plan never captures")
+    p.add_argument("--json", action="store_true", help="print the plan as JSON")
+    p.set_defaults(func=_cmd_plan)
+
+    p = sub.add_parser("config", help="print the default config or --check a file")
+    p.add_argument("--check", type=Path, default=None, help="validate this config file")
+    p.set_defaults(func=_cmd_config)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except RigError as exc:
+        print(f"rig {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"rig {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
