@@ -32,7 +32,7 @@ class SensorModel:
     electrons_per_dn: float
 
 
-def mosaic_rggb(rgb: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+def _signal_mosaic(rgb: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
     """(H, W, 3) -> (2H, 2W) RGGB mosaic (each RGB pixel becomes one 2x2 CFA cell)."""
     h, w, _ = rgb.shape
     m = np.empty((2 * h, 2 * w))
@@ -46,7 +46,7 @@ def mosaic_rggb(rgb: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
 def expose(radiance: npt.NDArray[np.float64], exposure_s: float, sensor: SensorModel,
            rng: np.random.Generator) -> npt.NDArray[np.uint16]:
     """Radiance image (H, W, 3) -> noisy raw mosaic (2H, 2W) in DN, clipped at the white level."""
-    signal_dn = mosaic_rggb(radiance) * sensor.gain_dn_per_unit * exposure_s
+    signal_dn = _signal_mosaic(radiance) * sensor.gain_dn_per_unit * exposure_s
     electrons = rng.poisson(np.maximum(signal_dn, 0.0) * sensor.electrons_per_dn)
     dn = electrons / sensor.electrons_per_dn + rng.normal(0.0, sensor.read_noise_dn, signal_dn.shape)
     dn = np.round(dn + sensor.black_level_dn)
