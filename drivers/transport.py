@@ -8,12 +8,16 @@ on a pty or on loopback TCP with no code change.
 """
 from __future__ import annotations
 
+import termios
 import time
 from typing import Protocol, runtime_checkable
 
 import serial
 
 from .errors import ConnectionLost, DeviceTimeout
+
+# pyserial on a pty whose other end is gone raises termios.error, which is not an OSError
+_PORT_ERRORS = (serial.SerialException, OSError, termios.error)
 
 
 @runtime_checkable
@@ -44,7 +48,7 @@ def read_exact(port: ByteTransport, size: int, *, timeout_s: float, what: str) -
     while len(buf) < size:
         try:
             chunk = port.read(size - len(buf))
-        except (serial.SerialException, OSError) as exc:
+        except _PORT_ERRORS as exc:
             raise ConnectionLost(f"transport lost while reading {what}: {exc}") from exc
         if chunk:
             buf += chunk
@@ -61,5 +65,5 @@ def write_all(port: ByteTransport, data: bytes, *, what: str) -> None:
         flush = getattr(port, "flush", None)
         if flush is not None:
             flush()
-    except (serial.SerialException, OSError) as exc:
+    except _PORT_ERRORS as exc:
         raise ConnectionLost(f"transport lost while writing {what}: {exc}") from exc

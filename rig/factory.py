@@ -39,7 +39,7 @@ def start_simulators(config: RigConfig, geometry: RigGeometry, workdir: Path | N
                      ) -> SimulatedRig:
     """Start every simulator the config asks for (URL ``sim``)."""
     from simulators.camera import SensorModel, SimulatedCamera
-    from simulators.led_sphere import LedSphereModel
+    from simulators.led_sphere import LedSphereModel, Ticker
     from simulators.scene import SphereObject
     from simulators.serve import serve
     from simulators.total_station import GeoComModel
@@ -64,6 +64,7 @@ def start_simulators(config: RigConfig, geometry: RigGeometry, workdir: Path | N
                                    on_light_change=simcam.on_light_change)
             srv = serve(model, "pty")
             rig._closers.append(srv)
+            rig._closers.append(Ticker(model).start())   # the watchdog runs while the host is silent
             rig.urls["sphere"] = srv.url
         if config.trigger.url == "sim":
             srv = serve(EsperTriggerModel(on_fire=simcam.on_fire), "pty")

@@ -55,27 +55,6 @@ def mosaic_rggb(rgb_linear: npt.ArrayLike, *, black_level: int | Sequence[int] =
         raise ValueError(f"rgb_linear must have shape (H, W, 3), got {rgb.shape}")
     if not np.all(np.isfinite(rgb)):
         raise ValueError("rgb_linear holds NaN or infinite values")
-    write_cfa_dng(path, mosaic, exposure_s=exposure_s, black_level=black_level, white_level=white_level,
-                  make=make, model=model, as_shot_neutral=as_shot_neutral)
-    return mosaic
-
-
-def write_cfa_dng(path: str | os.PathLike[str], mosaic: npt.ArrayLike, *, exposure_s: float,
-                  black_level: int | Sequence[int], white_level: int, make: str = "sssrig",
-                  model: str = "SimCam", as_shot_neutral: tuple[float, float, float] = (1.0, 1.0, 1.0)
-                  ) -> None:
-    """Write an RGGB sensor mosaic (2H, 2W) of uint16 DN values as a CFA DNG, atomically.
-
-    Used directly by the simulated camera, which adds photon and read noise per photosite.
-    """
-    import tifffile
-
-    mosaic = np.asarray(mosaic)
-    if mosaic.ndim != 2 or mosaic.dtype != np.uint16 or mosaic.shape[0] % 2 or mosaic.shape[1] % 2:
-        raise ValueError(f"mosaic: expected a 2-D uint16 array of even shape, got {mosaic.dtype} "
-                         f"{mosaic.shape}")
-    if min(mosaic.shape) < 2 * MIN_CELLS:
-        raise ValueError(f"mosaic of shape {mosaic.shape} is too small: LibRaw needs >= {2 * MIN_CELLS} px")
     black = _black_2x2(black_level)
     if np.any(black < 0) or np.any(black >= white_level):
         raise ValueError(f"black level {black.ravel().tolist()} must be in [0, white_level={white_level})")
