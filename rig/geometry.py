@@ -79,3 +79,19 @@ def rig_geometry(config: "RigConfig") -> RigGeometry:
     targets = {t.name: t.xyz_mm for t in config.targets}
     targets["key_led"] = tuple(float(v) for v in pos[key])
     return RigGeometry(pos, dirs, cam, key, targets)
+
+
+def geometry_to_dict(g: RigGeometry) -> dict:
+    """The manifest's ``geometry`` block (docs/session-format.md)."""
+    c = g.camera
+    return {"led_positions_mm": g.led_positions_mm.tolist(), "led_directions": g.led_directions.tolist(),
+            "key_led": g.key_led,
+            "camera": {"model": "pinhole", "width_px": c.width_px, "height_px": c.height_px,
+                       "fx_px": c.fx_px, "fy_px": c.fy_px, "cx_px": c.cx_px, "cy_px": c.cy_px,
+                       "rotation": [list(r) for r in c.rotation], "center_mm": list(c.center_mm)}}
+
+
+def camera_from_dict(d: dict) -> PinholeCamera:
+    return PinholeCamera(int(d["width_px"]), int(d["height_px"]), float(d["fx_px"]), float(d["fy_px"]),
+                         float(d["cx_px"]), float(d["cy_px"]), tuple(tuple(map(float, r)) for r in d["rotation"]),
+                         tuple(map(float, d["center_mm"])))
