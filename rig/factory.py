@@ -18,6 +18,14 @@ from .geometry import RigGeometry, rig_geometry  # noqa: F401  (re-exported)
 from .runner import Devices
 
 
+class _Stopper:
+    def __init__(self, obj: Any) -> None:
+        self.obj = obj
+
+    def close(self) -> None:
+        self.obj.stop()
+
+
 @dataclass
 class SimulatedRig:
     """The simulators of one rig, running on real transports."""
@@ -59,7 +67,15 @@ def start_simulators(config: RigConfig, geometry: RigGeometry, workdir: Path | N
         "sigma_a_per_mm": list(sc.sigma_a_per_mm), "eta": sc.eta})
     rig._closers.append(simcam)
     try:
-        if config.sphere.url == "sim":
+        if config.sphere.url == "sim" and config.sphere.driver.startswith("modbus"):
+            from simulators.led_sphere_modbus import LedSphereModbusSim
+
+            rtu = config.sphere.driver == "modbus-rtu"
+            msim = LedSphereModbusSim(len(geometry.led_positions_mm), simcam.on_light_change,
+                                      tcp=None if rtu else "127.0.0.1:0", rtu=rtu).start()
+            rig._closers.append(_Stopper(msim))
+            rig.urls["sphere"] = msim.url
+        elif config.sphere.url == "sim":
             model = LedSphereModel(led_count=len(geometry.led_positions_mm),
                                    on_light_change=simcam.on_light_change)
             srv = serve(model, "pty")
@@ -93,11 +109,14 @@ def open_devices(config: RigConfig, geometry: RigGeometry, sim: SimulatedRig | N
     urls = sim.urls if sim else {}
     s = config.sphere
     opened: list[Any] = []
+    limits = dict(max_total_current_a=s.max_total_current_a, max_mean_duty=s.max_mean_duty,
+                  led_current_a_per_channel=s.led_current_a_per_channel)
     try:
-        light = open_led_sphere_serial(urls.get("sphere", s.url),
-                                       max_total_current_a=s.max_total_current_a,
-                                       max_mean_duty=s.max_mean_duty,
-                                       led_current_a_per_channel=s.led_current_a_per_channel)
+        if s.driver.startswith("modbus"):
+            from drivers.led_sphere_modbus import open_led_sphere_modbus
+            light = open_led_sphere_modbus(urls.get("sphere", s.url), **limits)
+        else:
+            light = open_led_sphere_serial(urls.get("sphere", s.url), **limits)
         opened.append(light)
         trigger = open_esper_trigger(urls.get("trigger", config.trigger.url))
         opened.append(trigger)
