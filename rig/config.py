@@ -96,6 +96,14 @@ class Target:
 
 
 @dataclass(frozen=True)
+class ObjectConfig:
+    shape: str
+    radius_mm: float
+    survey_target: str
+    target_offset_mm: Vec3
+
+
+@dataclass(frozen=True)
 class SceneConfig:
     shape: str
     radius_mm: float
@@ -124,6 +132,7 @@ class RigConfig:
     camera: CameraConfig
     total_station: StationConfig
     targets: tuple[Target, ...]
+    object: ObjectConfig
     scene: SceneConfig
     estimation: EstimationConfig
     source: str = field(default="<memory>", compare=False)
@@ -258,6 +267,13 @@ def parse_config(data: dict[str, Any], file: str = "<memory>") -> RigConfig:
     names = [tg.name for tg in targets]
     if len(set(names)) != len(names):
         raise ConfigError(file, "targets", "unique target names", names)
+    ob = top.section("object")
+    obj = ObjectConfig(shape=ob.str("shape", choices=("sphere",)), radius_mm=ob.num("radius_mm", positive=True),
+                       survey_target=ob.str("survey_target"),
+                       target_offset_mm=ob.vec3("target_offset_mm", (0.0, 0.0, 0.0)))
+    if obj.survey_target not in names:
+        raise ConfigError(file, "object.survey_target", "the name of a [[targets]] entry ("
+                          + ", ".join(names) + ")", obj.survey_target)
     sc = top.section("scene")
     material = sc.str("material", "custom")
     if material != "custom" and material not in MATERIALS:
@@ -277,7 +293,7 @@ def parse_config(data: dict[str, Any], file: str = "<memory>") -> RigConfig:
         single_image_subdivisions=e.int("single_image_subdivisions", 3, lo=1, hi=6),
         eta=e.num("eta", 1.3, lo=1.0, hi=3.0))
     name = top.section("rig").str("name")
-    return RigConfig(name, sphere, trigger, camera, station, tuple(targets), scene, estimation, file)
+    return RigConfig(name, sphere, trigger, camera, station, tuple(targets), obj, scene, estimation, file)
 
 
 def load_config(path: str | Path | None = None) -> RigConfig:

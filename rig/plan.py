@@ -49,7 +49,7 @@ def build_plan(config: RigConfig, led_directions, *, estimate: tuple[str, ...] =
             slot=slot, pattern=name, key_led=key if name == "key" else None)
     if "single-image" in estimate:
         add("survey", "the single-image method needs the object's position in the rig frame",
-            target="object_top")
+            target=config.object.survey_target)
         add("survey", "the single-image method needs the key light's position (point light)",
             target="key_led", led=key)
     add("polarization", "cross-polarized frames hold only subsurface (diffuse) light", state="cross")
