@@ -177,6 +177,65 @@ def run_single_image(frames: _Frames, manifest: dict[str, Any], surveys: dict[st
     return out
 
 
+def run_gradients(frames: _Frames, manifest: dict[str, Any], surveys: dict[str, Any]) -> dict[str, Any]:
+    """Polarized spherical gradients (Ma et al. 2007) -> albedo and diffuse normals per channel, then the
+    diffusion parameters from the blur of the normal field on the known sphere (Zhu et al., grounded form;
+    estimation.gradients and estimation.diffusion)."""
+    from estimation.diffusion import estimate_sphere, sphere_geometry
+    from estimation.gradients import LedRig, albedo_scale_from_radiometry, compute_maps
+
+    from .patterns import pattern_values
+
+    t0 = time.perf_counter()
+    cfg = manifest["config"]
+    geo = manifest["geometry"]
+    camera = camera_from_dict(geo["camera"])
+    center = _object_center(manifest, surveys)
+    radius = float(cfg["object"]["radius_mm"])
+    eta = float(cfg["estimation"]["eta"])
+    dirs = np.asarray(geo["led_directions"], float)
+    peak_q = round(cfg["sphere"]["pattern_peak"] * 65535) / 65535
+    names = [p for p in ("full", "x", "y", "z", "x_c", "y_c", "z_c") if frames.has(p)]
+    displayed = {p: np.round(pattern_values(p, dirs) * peak_q * 65535) / 65535 for p in names}
+    intensity = np.broadcast_to(np.asarray(cfg["sphere"]["led_intensity"], float), dirs.shape)
+    leds = LedRig.from_positions(geo["led_positions_mm"], intensity, patterns=displayed)
+    raw = {}
+    exposures = set()
+    for p in ["ambient", *names]:
+        rgb, exp = frames.raw(p)
+        raw[(p, "cross")] = rgb
+        exposures.add(exp)
+    if len(exposures) != 1:
+        raise SessionError(f"{manifest['name']}: gradient frames must share one exposure, got {sorted(exposures)}")
+    exposure = exposures.pop()
+    value_per_radiance = 1.0 / _radiance_per_value(frames.cam, exposure)
+    scale = albedo_scale_from_radiometry(np.full(3, value_per_radiance), leds, eta=eta)
+    normals, view, hit = sphere_geometry(camera, center, radius)
+    maps = compute_maps(raw, albedo_scale=scale, leds=leds, eta=eta, view_dirs=view,
+                        geometry_normals=np.where(hit[..., None], normals, 0.0), object_mask=hit,
+                        surface_center_mm=center, surface_radius_mm=radius)
+    t_maps = time.perf_counter() - t0
+    est = estimate_sphere(maps, radius_mm=radius, true_normals=normals)
+    summ = est.summary
+    seconds = time.perf_counter() - t0
+    out: dict[str, Any] = {
+        "estimator": "gradients", "success": any(st != "unknown" for st in summ.status),
+        "message": "ok" if any(st != "unknown" for st in summ.status) else "no usable pixels",
+        "method": f"spherical gradients + normal-field blur on a sphere ({summ.method})",
+        "eta": eta, "seconds": seconds, "seconds_maps": t_maps, "status": list(summ.status),
+        "n_pixels": summ.n_pixels.tolist(),
+        "inputs": {"frames": [frames.session.frame(p, "cross").file for p in ["ambient", *names]],
+                   "object_center_mm": center.tolist(), "radius_mm": radius,
+                   "albedo_scale": scale.tolist(),
+                   "radiometry": "design values of the camera and LED config (uncalibrated)"}}
+    for key, name in (("R_d", "R_d"), ("sigma_s_prime_per_mm", "sigma_s_prime_per_mm"),
+                      ("sigma_a_per_mm", "sigma_a_per_mm"), ("D_mm", "D_mm"), ("l_d_mm", "l_d_mm")):
+        if name in summ.params:
+            out[key] = summ.params[name].value
+            out[key + "_interval"] = summ.params[name].interval
+    return out
+
+
 def manifest_frame(frames: _Frames, pattern: str, pol: str = "cross") -> str:
     return frames.session.frame(pattern, pol).file
 
@@ -227,6 +286,12 @@ def estimate_session(root: str | Path, *, log: Callable[[str], None] | None = No
     results: dict[str, Any] = {}
     rows: list[dict[str, Any]] = []
     notes: list[str] = []
+    if frames.has("x"):
+        est = run_gradients(frames, manifest, surveys)
+        session.write_estimate("gradients", est)
+        say(f"gradients estimate: {est['seconds']:.2f} s")
+        results["gradients"] = est
+        rows += _rows("gradients", est, truth)
     if frames.has("key"):
         est = run_single_image(frames, manifest, surveys)
         session.write_estimate("single-image", est)

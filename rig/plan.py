@@ -47,9 +47,9 @@ def build_plan(config: RigConfig, led_directions, *, estimate: tuple[str, ...] =
     for slot, name in enumerate(patterns):
         add("upload", f"preload pattern '{name}' so the capture loop only switches slots",
             slot=slot, pattern=name, key_led=key if name == "key" else None)
+    add("survey", "both estimators need the declared object's position in the rig frame",
+        target=config.object.survey_target)
     if "single-image" in estimate:
-        add("survey", "the single-image method needs the object's position in the rig frame",
-            target=config.object.survey_target)
         add("survey", "the single-image method needs the key light's position (point light)",
             target="key_led", led=key)
     add("polarization", "cross-polarized frames hold only subsurface (diffuse) light", state="cross")

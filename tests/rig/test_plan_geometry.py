@@ -43,7 +43,8 @@ def test_plan_tables():
                     ("z", "cross"), ("key", "cross")]
     assert [s.params["target"] for s in both if s.kind == "survey"] == ["object_top", "key_led"]
     grad_only = build_plan(cfg, d, estimate=("gradients",))
-    assert not any(s.kind == "survey" for s in grad_only)       # no survey without single-image
+    # no survey of the key light without single-image; the object is still surveyed
+    assert [s.params["target"] for s in grad_only if s.kind == "survey"] == ["object_top"]
     assert "key" not in [s.params.get("pattern") for s in grad_only]
     comp = build_plan(cfg, d, estimate=("gradients",), complements=True)
     assert [s.params["pattern"] for s in comp if s.kind == "capture"] == [
