@@ -23,7 +23,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     result = run_demo(config_path=args.config, sessions_dir=args.sessions, name=args.name,
                       log=None if args.json else (lambda m: print(m, file=sys.stderr, flush=True)))
     if args.json:
-        print(json.dumps(result, indent=2))
+        from .session import _json_default
+        print(json.dumps(result, indent=2, default=_json_default))
     else:
         print(format_table(result))
     return 0
