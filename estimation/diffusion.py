@@ -51,6 +51,7 @@ __all__ = [
     "invert_sphere_scalar",
     "DiffusionMaps",
     "estimate_diffusion",
+    "curvature_sq_from_normals",
     "ParameterSummary",
     "DiffusionSummary",
     "summarize",
@@ -317,6 +318,30 @@ def invert_sphere_scalar(albedo: float, shortening: float, radius_mm: float, eta
     return 1.0 - s * s / 3.0, l_mm, bool(c_l or c_s)
 
 
+def curvature_sq_from_normals(normals: ArrayLike, points_mm: ArrayLike) -> Array:
+    """k1^2 + k2^2 [1/mm^2] per pixel from a normal map and the surface points it belongs to (H, W, 3 each).
+
+    With J_n = [dn/du, dn/dv] and J_x = [dx/du, dx/dv] (central differences over the pixel grid), the shape
+    operator S maps dx to dn, and k1^2 + k2^2 = ||S||_F^2 = trace(J_n (J_x^T J_x)^-1 J_n^T). Use specular
+    normals (or known geometry) and the matching depth map; NaN where a neighbour is missing or the
+    parameterization is degenerate. Feed it to :func:`estimate_diffusion` (``curvature_sq_per_mm2``).
+    """
+    n = np.asarray(normals, dtype=np.float64)
+    x = np.asarray(points_mm, dtype=np.float64)
+    if n.shape != x.shape or n.ndim != 3 or n.shape[2] != 3:
+        raise ValueError("normals and points_mm must both be (H, W, 3)")
+    nu, nv = np.gradient(n, axis=1), np.gradient(n, axis=0)
+    xu, xv = np.gradient(x, axis=1), np.gradient(x, axis=0)
+    g11 = np.sum(xu * xu, -1)
+    g12 = np.sum(xu * xv, -1)
+    g22 = np.sum(xv * xv, -1)
+    det = g11 * g22 - g12 * g12
+    with np.errstate(invalid="ignore", divide="ignore"):
+        i11, i12, i22 = g22 / det, -g12 / det, g11 / det
+        out = (i11 * np.sum(nu * nu, -1) + 2 * i12 * np.sum(nu * nv, -1) + i22 * np.sum(nv * nv, -1))
+    return np.where(det > 1e-12 * np.maximum(g11 * g22, 1e-300), out, np.nan)
+
+
 # --------------------------------------------------------------------------------------------------------------
 # per-pixel grounded estimate
 # --------------------------------------------------------------------------------------------------------------
@@ -326,7 +351,8 @@ class DiffusionMaps:
 
     ``albedo``: measured apparent albedo; ``shortening``: S = v.n_true/(tau1/tau0); ``radius_mm`` (H, W): sphere
     (or sphere-equivalent) radius used; ``R_d``: half-space total diffuse reflectance of the estimated alpha';
-    ``r2_mm2``: half-space <r^2> of the estimated profile; ``censored``: clipped at a model bound.
+    ``r2_mm2``: half-space <r^2> of the estimated profile; ``censored``: clipped at a model bound. Where sigma_a
+    is censored at 0, ``l_d_mm`` and ``r2_mm2`` are +inf (a true statement, not a failure); nothing else is inf.
     """
 
     albedo: NDArray[np.float32]

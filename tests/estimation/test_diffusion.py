@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 from scipy import integrate
 
 from estimation.camera import PinholeCamera
-from estimation.diffusion import (DiffusionMaps, calibrate_k, compare_estimates, diffusion_seed, estimate_diffusion,
+from estimation.diffusion import (DiffusionMaps, calibrate_k, compare_estimates, curvature_sq_from_normals, diffusion_seed, estimate_diffusion,
                                   estimate_sphere, fit_relief, invert_sphere, invert_sphere_scalar, relief_mtf,
                                   seed_regression, sphere_albedo, sphere_geometry, sphere_shortening, summarize,
                                   truncated_second_moment_mm4)
@@ -334,6 +334,11 @@ def test_flat_regions_and_grazing_pixels_are_unknown(camera, marble10) -> None:
     _, view, hit = sphere_geometry(camera, CENTER, 10.0)
     cosv = np.sum(np.nan_to_num(normals) * view, -1)
     assert dm.unknown[hit & (cosv < np.cos(np.radians(70)))].all()
+    # curvature from the normal map and the surface points: 2 / rho^2 on the sphere
+    k2_est = curvature_sq_from_normals(normals, 10.0 * normals)
+    inner = np.isfinite(k2_est)
+    assert inner.sum() > 3000
+    np.testing.assert_allclose(k2_est[inner], 0.02, rtol=2e-2)
     # per-pixel curvature path equals the known-radius path where both apply
     dk = estimate_diffusion(maps, normals, sphere_radius_mm=10.0)
     both = ~dm.unknown & ~dk.unknown
