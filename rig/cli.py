@@ -30,7 +30,32 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _sim_alone(args: argparse.Namespace) -> int:
+    """One device's simulator on a URL given by the user (its own module's command line)."""
+    from .geometry import rig_geometry
+    cfg = load_config(args.config)
+    leds = str(len(rig_geometry(cfg).led_positions_mm))
+    url = args.url or "pty"
+    if args.device == "sphere":
+        from simulators.led_sphere import main as sim_main
+        return sim_main(["--url", url, "--leds", leds])
+    if args.device == "sphere-modbus":
+        from simulators.led_sphere_modbus import main as sim_main
+        if url.startswith("tcp://"):
+            return sim_main(["--tcp", url[len("tcp://"):], "--leds", leds])
+        if url == "pty":
+            return sim_main(["--rtu", "--leds", leds])
+        raise SystemExit(f"rig sim: --url for sphere-modbus: expected 'pty' or tcp://HOST:PORT, got {url!r}")
+    if args.device == "trigger":
+        from simulators.trigger import main as sim_main
+        return sim_main(["--url", url])
+    from simulators.total_station import main as sim_main
+    return sim_main(["--url", url])
+
+
 def _cmd_sim(args: argparse.Namespace) -> int:
+    if args.device:
+        return _sim_alone(args)
     from .factory import rig_geometry, start_simulators
     cfg = load_config(args.config)
     sim = start_simulators(cfg, rig_geometry(cfg))
@@ -88,6 +113,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("sim", help="start the simulated devices, print their URLs")
     _add_config(p)
     p.add_argument("--seconds", type=float, default=0.0, help="stop after this long (0: until Ctrl-C)")
+    p.add_argument("--device", choices=["sphere", "sphere-modbus", "trigger", "total-station"], default=None,
+                   help="start only this device's simulator, on --url")
+    p.add_argument("--url", default=None, help="with --device: 'pty' (default) or tcp://HOST:PORT")
     p.set_defaults(func=_cmd_sim)
 
     p = sub.add_parser("plan", help="print a capture plan (dry run, no devices)")

@@ -90,3 +90,25 @@ def test_sim_prints_device_urls(tmp_path):
     urls = dict(line.split(None, 1) for line in proc.stdout.splitlines())
     assert urls["sphere"].startswith("/dev/pts/") and urls["trigger"].startswith("/dev/pts/")
     assert urls["total_station"].startswith("socket://127.0.0.1:")
+
+
+def test_one_simulator_alone_on_a_user_url(tmp_path):
+    """`rig sim --device sphere --url tcp://127.0.0.1:0` serves the sphere alone; our driver talks to it."""
+    from drivers.led_sphere import open_led_sphere_serial
+
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(sys.path))
+    proc = subprocess.Popen([sys.executable, "-m", "rig.cli", "sim", "--device", "sphere", "--url",
+                             "tcp://127.0.0.1:0"], cwd=tmp_path, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        url = proc.stdout.readline().strip()
+        assert url.startswith("socket://127.0.0.1:"), url
+        light = open_led_sphere_serial(url, max_total_current_a=25.0, max_mean_duty=0.85)
+        try:
+            assert light.identify().extra.get("led_count", light.led_count) == 343
+            assert light.led_count == 343
+        finally:
+            light.close()
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
