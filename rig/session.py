@@ -15,7 +15,6 @@ import hashlib
 import json
 import os
 import re
-import shutil
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator
@@ -190,13 +189,13 @@ class Session:
         path = self.root / "events.jsonl"
         if not path.exists():
             return
-        for lineno, line in enumerate(path.read_text().splitlines(), 1):
+        for line in path.read_text().splitlines():
             if not line.strip():
                 continue
             try:
                 yield json.loads(line)
             except json.JSONDecodeError:
-                # a torn last line after a crash: ignore it; anything earlier is corruption
+                # a line torn by a crash mid-write carries no committed event: skip it
                 continue
 
     def frames(self) -> list[FrameRecord]:
@@ -239,9 +238,6 @@ class Session:
         for p in sorted((self.root / "estimates").glob("*.json")):
             out[p.stem] = json.loads(p.read_text())
         return out
-
-    def remove(self) -> None:  # used by tests only
-        shutil.rmtree(self.root)
 
 
 def _json_default(o: Any) -> Any:
