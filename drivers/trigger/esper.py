@@ -19,8 +19,6 @@ The codec (:func:`encode_command`, :func:`parse_command`, :func:`encode_reply`, 
 """
 from __future__ import annotations
 
-import math
-import numbers
 import re
 import threading
 import time
@@ -32,6 +30,7 @@ import serial
 from ..contracts import DeviceIdentity
 from ..errors import ConnectionLost, DeviceBusy, DeviceRejected, DeviceTimeout, LimitError, ProtocolError
 from ..transport import ByteTransport, open_transport, write_all
+from .exposure import check_exposure_range, exposure_ms
 
 TERMINATOR = b"\n"
 ACK = b"tenFour"
@@ -256,17 +255,9 @@ def decode_reply(buf: bytes) -> tuple[int, Reply | None]:
 
 # ----------------------------------------------------------------------------------------------- driver
 def bulb_ms_for(exposure_s: float, *, min_exposure_s: float, max_exposure_s: float) -> int:
-    """Whole milliseconds for ``exposure_s``; :class:`LimitError` when out of range (nothing is sent)."""
-    if not isinstance(exposure_s, numbers.Real) or isinstance(exposure_s, bool):
-        raise LimitError(f"exposure must be a number of seconds, got {exposure_s!r}")
-    exposure_s = float(exposure_s)
-    if not math.isfinite(exposure_s):
-        raise LimitError(f"exposure must be a finite number of seconds, got {exposure_s!r}")
-    if not min_exposure_s <= exposure_s <= max_exposure_s:
-        raise LimitError(f"exposure {exposure_s:g} s outside the trigger's range "
-                         f"[{min_exposure_s:g}, {max_exposure_s:g}] s")
-    ms = round(exposure_s * 1000.0)
-    if not 1 <= ms <= BULB_MAX_MS:
+    """Whole milliseconds for the ``b<ms>`` command; :class:`LimitError` when out of range (nothing is sent)."""
+    ms = exposure_ms(exposure_s, min_exposure_s=min_exposure_s, max_exposure_s=max_exposure_s)
+    if ms > BULB_MAX_MS:
         raise LimitError(f"exposure {exposure_s:g} s is {ms} ms, outside the bulb range 1..{BULB_MAX_MS} ms")
     return ms
 
@@ -286,8 +277,7 @@ class EsperTrigger:
                  mode: int = 0, wait_for_exposure: bool = True, name: str = "esper") -> None:
         if len(outputs) != OUTPUT_COUNT:
             raise ValueError(f"outputs: expected {OUTPUT_COUNT} flags, got {len(outputs)}")
-        if not 0 < min_exposure_s <= max_exposure_s:
-            raise ValueError(f"need 0 < min_exposure_s <= max_exposure_s, got {min_exposure_s}, {max_exposure_s}")
+        check_exposure_range(min_exposure_s, max_exposure_s)
         self._port = port
         self.timeout_s = timeout_s
         self.min_exposure_s = min_exposure_s

@@ -39,7 +39,7 @@ from typing import Any, Protocol, runtime_checkable
 
 from ..contracts import DeviceIdentity
 from ..errors import ConnectionLost, DeviceBusy, DeviceRejected, DeviceTimeout, LimitError, ProtocolError
-from .esper import bulb_ms_for  # same exposure limits and whole-ms rounding as the ASCII box
+from .exposure import check_exposure_range, exposure_ms
 
 REPORT_SIZE = 16
 OUT_REPORT_ID = 0x01
@@ -237,8 +237,7 @@ class HidTrigger:
                  poll_interval_s: float = 0.005, name: str = "hid-trigger") -> None:
         if not 0 <= outputs_mask <= ALL_OUTPUTS:
             raise ValueError(f"outputs_mask must use bits 0..{OUTPUT_COUNT - 1}, got 0x{outputs_mask:x}")
-        if not 0 < min_exposure_s <= max_exposure_s:
-            raise ValueError(f"need 0 < min_exposure_s <= max_exposure_s, got {min_exposure_s}, {max_exposure_s}")
+        check_exposure_range(min_exposure_s, max_exposure_s)
         self._t = transport
         self.timeout_s = timeout_s
         self.min_exposure_s = min_exposure_s
@@ -310,7 +309,9 @@ class HidTrigger:
 
     def fire(self, exposure_s: float) -> None:
         """Open the shutter for ``exposure_s`` (whole ms); return once the box reports the exposure over."""
-        ms = bulb_ms_for(exposure_s, min_exposure_s=self.min_exposure_s, max_exposure_s=self.max_exposure_s)
+        ms = exposure_ms(exposure_s, min_exposure_s=self.min_exposure_s, max_exposure_s=self.max_exposure_s)
+        if ms > U32_MAX:
+            raise LimitError(f"exposure {exposure_s:g} s is {ms} ms, beyond the box's u32 bulb field")
         with self._lock:
             if not self._configured:
                 self.enable(self.outputs_mask)

@@ -19,7 +19,7 @@ import serial
 
 from ..contracts import DeviceIdentity
 from ..errors import ConnectionLost
-from .esper import bulb_ms_for
+from .exposure import check_exposure_range, exposure_ms
 
 
 class SerialRelease:
@@ -33,8 +33,7 @@ class SerialRelease:
                  name: str = "serial-release") -> None:
         if focus_lead_s < 0:
             raise ValueError(f"focus_lead_s must be >= 0, got {focus_lead_s}")
-        if not 0 < min_exposure_s <= max_exposure_s:
-            raise ValueError(f"need 0 < min_exposure_s <= max_exposure_s, got {min_exposure_s}, {max_exposure_s}")
+        check_exposure_range(min_exposure_s, max_exposure_s)
         self._port = port
         self.focus_lead_s = focus_lead_s
         self.min_exposure_s = min_exposure_s
@@ -70,7 +69,7 @@ class SerialRelease:
 
     def fire(self, exposure_s: float) -> None:
         """RTS high, ``focus_lead_s``, DTR high for ``exposure_s`` (whole ms), then DTR and RTS low."""
-        ms = bulb_ms_for(exposure_s, min_exposure_s=self.min_exposure_s, max_exposure_s=self.max_exposure_s)
+        ms = exposure_ms(exposure_s, min_exposure_s=self.min_exposure_s, max_exposure_s=self.max_exposure_s)
         with self._lock:
             if self._closed:
                 raise ConnectionLost(f"{self.name}: trigger is closed")
