@@ -89,6 +89,24 @@ def _cmd_plan(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_estimate(args: argparse.Namespace) -> int:
+    if args.what == "single-image":
+        from .scene_file import run_cli as run_scene  # a scene file a user brings (docs/scene-file.md)
+        return run_scene(args)
+    if args.what == "gradients":
+        from .capture_folder import run_cli as run_folder  # a capture folder (docs/capture-folder.md)
+        return run_folder(args)
+    from .estimate import estimate_session
+    from .session import _json_default
+    out = estimate_session(args.session, log=None if args.json else (lambda m: print(m, file=sys.stderr)))
+    if args.json:
+        print(json.dumps(out, indent=2, default=_json_default))
+    else:
+        for row in out.get("rows", []):
+            print("  ".join(f"{k}={v}" for k, v in row.items()))
+    return 0
+
+
 def _cmd_config(args: argparse.Namespace) -> int:
     if args.check:
         cfg = load_config(args.check)
@@ -126,6 +144,28 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--dry-run", action="store_true", help="accepted for clarity; plan never captures")
     p.add_argument("--json", action="store_true", help="print the plan as JSON")
     p.set_defaults(func=_cmd_plan)
+
+    p = sub.add_parser("estimate", help="estimate scattering parameters from a session, a scene file or a "
+                                        "capture folder")
+    esub = p.add_subparsers(dest="what", required=True, metavar="WHAT")
+    q = esub.add_parser("session", help="run every estimator a session folder has frames for")
+    q.add_argument("session", type=Path, help="session folder (docs/session-format.md)")
+    q.add_argument("--json", action="store_true", help="print the result as JSON")
+    q = esub.add_parser("single-image", help="single-image method on a scene file (docs/scene-file.md)")
+    q.add_argument("scene", type=Path, help="scene file (TOML)")
+    q.add_argument("--method", choices=["direct", "tikhonov", "pinv"], default=None,
+                   help="estimation method (default: the scene file's, else direct)")
+    q.add_argument("--out", type=Path, default=None,
+                   help="JSON result file (default: <scene>.estimate.json beside the scene file)")
+    q.add_argument("--json", action="store_true", help="print the result as JSON instead of a table")
+    q = esub.add_parser("gradients", help="polarized spherical-gradient maps from a capture folder "
+                                          "(docs/capture-folder.md)")
+    q.add_argument("folder", type=Path, help="capture folder holding capture.toml and the frames")
+    q.add_argument("--out", type=Path, default=None, help="output folder for the maps (default: FOLDER/maps)")
+    q.add_argument("--format", choices=["exr", "tiff"], default="exr", help="float map file format")
+    q.add_argument("--tile-rows", type=int, default=None, help="rows per processing tile (bounded memory)")
+    q.add_argument("--json", action="store_true", help="print the summary as JSON instead of a table")
+    p.set_defaults(func=_cmd_estimate)
 
     p = sub.add_parser("config", help="print the default config or --check a file")
     p.add_argument("--check", type=Path, default=None, help="validate this config file")
