@@ -1,0 +1,517 @@
+"""Write and read the maps of a gradient estimate: one float image per quantity, a JSON sidecar, a PNG preview.
+
+Layout of an output folder (``docs/capture-folder.md``, section "Outputs"):
+
+    maps.json                 sidecar: per file quantity, unit, channel order, frame, NaN meaning, sha256;
+                              the provenance (capture folder, frames + sha256, calibration, software, parameters)
+    albedo_diffuse.exr        (H, W, 3) R,G,B   measured diffuse albedo (R_d convention of docs/gradients.md sec. 3)
+    normals_diffuse_R.exr     (H, W, 3) x,y,z   unit diffuse normal of the red channel, rig frame
+    normals_diffuse_G.exr, normals_diffuse_B.exr
+    diffuse_length.exr        (H, W, 3) R,G,B   |v| / (tau1/tau0): 1 = no subsurface blur
+    albedo_specular.exr       (H, W, 3) R,G,B   with parallel-polarized frames only
+    normals_specular.exr      (H, W, 3) x,y,z   with parallel-polarized frames only
+    R_d.exr, alpha_prime.exr, D_mm.exr, sigma_s_prime_per_mm.exr, sigma_a_per_mm.exr, shortening.exr
+                              (H, W, 3) R,G,B   grounded diffusion estimate (with geometry only)
+    D_seed_mm.exr             (H, W, 3) R,G,B   the seed's D = k R_d/|n_z| (with a seed calibration only)
+    masks.png                 8-bit RGB bit field per channel (MASK_BITS)
+    preview.png               contact sheet for people (display-encoded; never for measurement)
+
+Float files are EXR (float32, ZIP) or float32 TIFF (zlib), written atomically by :mod:`rig.imageio`. **NaN means
+unknown** (masked: saturated, dark, inconsistent, grazing, background, outside the model's validity); nothing is
+ever written as a number where it is not known. Row 0 is the top of the image, column 0 the left, as in the input
+frames (the pixel convention of :class:`estimation.camera.PinholeCamera`). Vectors are in the rig frame
+(right-handed, +z up, docs/architecture.md).
+
+References: Ma et al. 2007 (maps), Jensen et al. 2001 (R_d, alpha', D, sigma_s', sigma_a), Zhu et al. (the seed's
+D ~ R_d/|n_z|); ``docs/gradients.md`` for every quantity's definition.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+from numpy.typing import NDArray
+
+from drivers.errors import RigError
+from estimation.diffusion import DiffusionMaps, SeedEstimate
+from estimation.gradients import GradientMaps
+
+from .imageio import atomic_write, write_exr, write_float_tiff, write_png8
+
+__all__ = ["MAPS_FORMAT", "MAPS_FORMAT_VERSION", "SIDECAR", "PREVIEW", "MASKS", "MASK_BITS", "MAP_SPECS",
+           "PREVIEW_TILE_PX", "MapSpec", "MapsError", "LoadedMaps", "write_maps", "read_maps", "preview_size_px"]
+
+MAPS_FORMAT = "sssrig-maps"
+MAPS_FORMAT_VERSION = 1
+SIDECAR = "maps.json"
+PREVIEW = "preview.png"
+MASKS = "masks.png"
+PREVIEW_TILE_PX = (320, 300)       # (width, height) of one preview tile; the sheet is 3 tiles wide
+PREVIEW_COLUMNS = 3
+_DPI = 100
+
+# bits of masks.png, per colour channel (per-pixel masks are set in all three channels)
+MASK_BITS: dict[str, int] = {
+    "saturated": 1,            # a used frame reached the saturation level in this channel
+    "dark": 2,                 # full-on signal below the dark level in this channel
+    "inconsistent": 4,         # non-finite input, rho <= 0 or |v|/tau above max_length
+    "grazing": 8,              # n.v below cos(grazing angle) (per pixel)
+    "background": 16,          # all channels dark, or outside the object mask (per pixel)
+    "specular_unknown": 32,    # no specular estimate here (per pixel; set everywhere without parallel frames)
+    "diffusion_unknown": 64,   # no grounded diffusion estimate in this channel (everywhere without geometry)
+}
+
+FRAME = ("image grid of the input frames (row 0 top, column 0 left); vectors in the rig frame: right-handed, "
+         "mm, +z up (docs/architecture.md)")
+_NAN_DIFFUSE = "unknown: saturated, dark, inconsistent, grazing or background pixel (see masks.png)"
+
+
+class MapsError(RigError, ValueError):
+    """A maps folder is missing, malformed or does not match its sidecar; the message names the file."""
+
+    def __init__(self, path: str | os.PathLike[str], reason: str) -> None:
+        super().__init__(f"{os.fspath(path)}: {reason}")
+        self.path = os.fspath(path)
+        self.reason = reason
+
+
+@dataclass(frozen=True)
+class MapSpec:
+    """What one map file holds (copied into the sidecar)."""
+
+    name: str
+    quantity: str
+    unit: str
+    channels: tuple[str, str, str]
+    nan: str
+    definition: str
+
+    def sidecar(self) -> dict[str, Any]:
+        return {"quantity": self.quantity, "unit": self.unit, "channels": list(self.channels),
+                "frame": FRAME, "nan": self.nan, "definition": self.definition, "dtype": "float32"}
+
+
+_RGB = ("R", "G", "B")
+_XYZ = ("x", "y", "z")
+_DIFF_NAN = ("unknown: no grounded estimate (maps unknown there, outside the sphere region, grazing, or the "
+             "(albedo, shortening) pair could not be inverted)")
+MAP_SPECS: dict[str, MapSpec] = {s.name: s for s in [
+    MapSpec("albedo_diffuse", "diffuse albedo (total diffuse reflectance R_d, apparent on curved objects)", "1",
+            _RGB, _NAN_DIFFUSE,
+            "cross-polarized full-on signal x albedo_scale, exit Fresnel divided out (docs/gradients.md sec. 3)"),
+    *[MapSpec(f"normals_diffuse_{c}", f"diffuse normal of the {c} channel", "unit vector", _XYZ, _NAN_DIFFUSE,
+              "direction of the ideal-equivalent gradient vector v (Ma et al. 2007; docs/gradients.md sec. 2)")
+      for c in _RGB],
+    MapSpec("diffuse_length", "diffuse gradient length |v| / (tau1/tau0)", "1", _RGB, _NAN_DIFFUSE,
+            "1 for an unblurred Fresnel-Lambertian surface; < 1 where subsurface blur averages curved normals"),
+    MapSpec("albedo_specular", "specular albedo", "1", _RGB,
+            "unknown: no specular signal (dark, saturated, background) or no parallel-polarized frames",
+            "albedo_scale x (parallel - cross full-on) / 2 (docs/gradients.md sec. 3)"),
+    MapSpec("normals_specular", "specular normal", "unit vector", _XYZ,
+            "unknown: no specular signal (dark, saturated, background)",
+            "normalize(reflection vector + view direction) from the channel-summed specular gradients"),
+    MapSpec("R_d", "half-space total diffuse reflectance of the estimated alpha'", "1", _RGB, _DIFF_NAN,
+            "R_d(alpha', eta) of the Jensen dipole (science.md sec. 1)"),
+    MapSpec("alpha_prime", "reduced scattering albedo alpha' = sigma_s'/sigma_t'", "1", _RGB, _DIFF_NAN,
+            "from the inversion of (apparent albedo, shortening) on the sphere (docs/gradients.md sec. 5)"),
+    MapSpec("D_mm", "diffusion coefficient D = 1/(3 sigma_t')", "mm", _RGB, _DIFF_NAN,
+            "grounded estimator (docs/gradients.md sec. 5), no fitted constant"),
+    MapSpec("sigma_s_prime_per_mm", "reduced scattering coefficient sigma_s'", "1/mm", _RGB, _DIFF_NAN,
+            "alpha' sigma_t'"),
+    MapSpec("sigma_a_per_mm", "absorption coefficient sigma_a", "1/mm", _RGB, _DIFF_NAN,
+            "(1 - alpha') sigma_t'; poorly conditioned when sigma_a << sigma_s' (science.md sec. 6)"),
+    MapSpec("shortening", "shortening S = v.n_true / (tau1/tau0)", "1", _RGB, _DIFF_NAN,
+            "the observable of the grounded estimator: 1 - S grows with the diffusion length"),
+    MapSpec("D_seed_mm", "the seed's D = k R_d / |n_z| (Zhu et al.)", "mm", _RGB,
+            "unknown: maps unknown there or |n_z| below the floor",
+            "k is an empirical length calibrated on a reference (see provenance.seed): a relative map"),
+]}
+
+
+# ---------------------------------------------------------------------------------------------- helpers
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def _jsonable(o: Any) -> Any:
+    """Plain JSON (no NaN/inf: they become null) from numpy, paths, tuples and dataclass-free dicts."""
+    if isinstance(o, Mapping):
+        return {str(k): _jsonable(v) for k, v in o.items()}
+    if isinstance(o, (list, tuple)):
+        return [_jsonable(v) for v in o]
+    if isinstance(o, np.ndarray):
+        return _jsonable(o.tolist())
+    if isinstance(o, (np.bool_, bool)):
+        return bool(o)
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (float, np.floating)):
+        f = float(o)
+        return f if math.isfinite(f) else None
+    if isinstance(o, Path):
+        return str(o)
+    if o is None or isinstance(o, (str, int)):
+        return o
+    return str(o)
+
+
+def _write_json(path: Path, data: Mapping[str, Any]) -> Path:
+    text = json.dumps(_jsonable(data), indent=2, allow_nan=False) + "\n"
+    return atomic_write(path, lambda tmp: tmp.write_text(text))
+
+
+def _read_float(path: Path) -> NDArray[np.float32]:
+    """Read a float map (EXR or TIFF) keeping NaN (``rig.imageio.read_image`` refuses NaN in *frames*)."""
+    if not path.is_file():
+        raise MapsError(path, "no such file (listed in maps.json)")
+    try:
+        if path.suffix.lower() == ".exr":
+            import OpenEXR
+            with OpenEXR.File(str(path)) as f:
+                ch = f.channels()
+                if "RGB" in ch:
+                    a = np.asarray(ch["RGB"].pixels)
+                elif all(k in ch for k in "RGB"):
+                    a = np.stack([np.asarray(ch[k].pixels) for k in "RGB"], axis=-1)
+                else:
+                    raise MapsError(path, f"expected channels R,G,B; found {sorted(ch)}")
+        else:
+            import tifffile
+            a = tifffile.imread(str(path))
+    except MapsError:
+        raise
+    except Exception as exc:
+        raise MapsError(path, f"not a readable float map ({exc})") from None
+    return np.ascontiguousarray(a, dtype=np.float32)
+
+
+def _rgb(a: NDArray[Any] | None, name: str, shape: tuple[int, int]) -> NDArray[np.float32] | None:
+    if a is None:
+        return None
+    arr = np.asarray(a, dtype=np.float32)
+    if arr.shape != (*shape, 3):
+        raise ValueError(f"{name}: expected shape {(*shape, 3)}, got {arr.shape}")
+    return arr
+
+
+def _collect(maps: GradientMaps, diffusion: DiffusionMaps | None,
+             seed: SeedEstimate | None) -> dict[str, NDArray[np.float32]]:
+    shape = maps.shape
+    out: dict[str, NDArray[np.float32] | None] = {"albedo_diffuse": _rgb(maps.albedo, "albedo", shape)}
+    for c, ch in enumerate(_RGB):
+        out[f"normals_diffuse_{ch}"] = _rgb(maps.diffuse_normals[..., c, :], "diffuse_normals", shape)
+    out["diffuse_length"] = _rgb(maps.diffuse_length(), "diffuse_length", shape)
+    out["albedo_specular"] = _rgb(maps.specular_albedo, "specular_albedo", shape)
+    out["normals_specular"] = _rgb(maps.specular_normals, "specular_normals", shape)
+    if diffusion is not None:
+        for k in ("R_d", "alpha_prime", "D_mm", "sigma_s_prime_per_mm", "sigma_a_per_mm", "shortening"):
+            out[k] = _rgb(getattr(diffusion, k), k, shape)
+    if seed is not None:
+        out["D_seed_mm"] = _rgb(seed.D_mm, "seed D_mm", shape)
+    return {k: v for k, v in out.items() if v is not None}
+
+
+def _mask_field(maps: GradientMaps, diffusion: DiffusionMaps | None) -> NDArray[np.uint8]:
+    m = maps.masks
+    H, W = maps.shape
+    bits = np.zeros((H, W, 3), np.uint8)
+    bits |= np.where(m.saturated, MASK_BITS["saturated"], 0).astype(np.uint8)
+    bits |= np.where(m.dark, MASK_BITS["dark"], 0).astype(np.uint8)
+    bits |= np.where(m.inconsistent, MASK_BITS["inconsistent"], 0).astype(np.uint8)
+    bits |= np.where(m.grazing[..., None], MASK_BITS["grazing"], 0).astype(np.uint8)
+    bits |= np.where(m.background[..., None], MASK_BITS["background"], 0).astype(np.uint8)
+    spec_unknown = np.ones((H, W), bool) if maps.specular_unknown is None else maps.specular_unknown
+    bits |= np.where(spec_unknown[..., None], MASK_BITS["specular_unknown"], 0).astype(np.uint8)
+    d_unknown = np.ones((H, W, 3), bool) if diffusion is None else diffusion.unknown
+    bits |= np.where(d_unknown, MASK_BITS["diffusion_unknown"], 0).astype(np.uint8)
+    return bits
+
+
+# ---------------------------------------------------------------------------------------------- preview
+def _tiles(arrays: Mapping[str, NDArray[np.float32]]) -> list[list[dict[str, Any]]]:
+    """Rows of tiles: each tile {title, kind ('rgb'|'normal'|'scalar'), data, unit, group}."""
+    def alb(name: str, title: str) -> dict[str, Any]:
+        return {"title": title, "kind": "rgb", "data": arrays.get(name), "unit": ""}
+    rows = [[alb("albedo_diffuse", "diffuse albedo"), alb("albedo_specular", "specular albedo"),
+             {"title": "specular normals", "kind": "normal", "data": arrays.get("normals_specular"), "unit": ""}],
+            [{"title": f"diffuse normals {c}", "kind": "normal", "data": arrays[f"normals_diffuse_{c}"], "unit": ""}
+             for c in _RGB]]
+    for name, label, unit in (("D_mm", "D", "mm"), ("sigma_s_prime_per_mm", "sigma_s'", "1/mm"),
+                              ("sigma_a_per_mm", "sigma_a", "1/mm"), ("D_seed_mm", "D seed (relative)", "mm")):
+        if name in arrays:
+            rows.append([{"title": f"{label} {c}", "kind": "scalar", "data": arrays[name][..., i], "unit": unit,
+                          "group": name} for i, c in enumerate(_RGB)])
+    return rows
+
+
+def preview_size_px(n_rows: int) -> tuple[int, int]:
+    """(height, width) in pixels of a preview sheet with ``n_rows`` rows of tiles."""
+    return n_rows * PREVIEW_TILE_PX[1], PREVIEW_COLUMNS * PREVIEW_TILE_PX[0]
+
+
+def _srgb(linear: NDArray[Any]) -> NDArray[np.float64]:
+    x = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
+
+
+def _display_rgb(tile: dict[str, Any]) -> tuple[NDArray[np.float64], str]:
+    """Display RGB in [0, 1] with unknown = neutral grey, and a note on the scaling used."""
+    a = np.asarray(tile["data"], dtype=np.float64)
+    unknown = ~np.isfinite(a).all(-1)
+    if tile["kind"] == "normal":
+        rgb, note = (np.nan_to_num(a) + 1.0) / 2.0, "(n+1)/2"
+    else:
+        fin = a[np.isfinite(a)]
+        top = float(np.percentile(fin, 99.5)) if fin.size else 1.0
+        gain = 1.0 / top if top > 1.0 or (tile["title"].startswith("specular") and top > 0) else 1.0
+        rgb, note = _srgb(np.nan_to_num(a) * gain), ("sRGB display" + (f", x{gain:.3g}" if gain != 1.0 else ""))
+    rgb = np.clip(rgb, 0.0, 1.0)
+    rgb[unknown] = 0.5
+    return rgb, note
+
+
+def _scalar_ranges(rows: list[list[dict[str, Any]]]) -> dict[str, tuple[float, float]]:
+    """Shared colour range per quantity (1-99 % over its three channels), so channels compare by colour."""
+    out: dict[str, tuple[float, float]] = {}
+    for row in rows:
+        for t in row:
+            if t["kind"] != "scalar":
+                continue
+            vals = np.concatenate([np.asarray(u["data"], dtype=np.float64).ravel() for u in row])
+            vals = vals[np.isfinite(vals)]
+            if vals.size:
+                lo, hi = (float(v) for v in np.percentile(vals, [1, 99]))
+                if hi <= lo:
+                    lo, hi = lo - 0.5 * abs(lo) - 1e-12, hi + 0.5 * abs(hi) + 1e-12
+            else:
+                lo, hi = 0.0, 1.0
+            out[t["group"]] = (lo, hi)
+            break
+    return out
+
+
+def _preview_matplotlib(path: Path, rows: list[list[dict[str, Any]]], title: str) -> None:
+    from matplotlib import colormaps
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    h_px, w_px = preview_size_px(len(rows))
+    fig = Figure(figsize=(w_px / _DPI, h_px / _DPI), dpi=_DPI)
+    FigureCanvasAgg(fig)
+    fig.suptitle(title, fontsize=8, y=1 - 6 / h_px, va="top")
+    fig.subplots_adjust(left=0.02, right=0.95, top=1 - 34 / h_px, bottom=18 / h_px, wspace=0.25, hspace=0.18)
+    cmap = colormaps["viridis"].with_extremes(bad=(0.5, 0.5, 0.5))
+    ranges = _scalar_ranges(rows)
+    n_rows = len(rows)
+    for r, row in enumerate(rows):
+        for c, t in enumerate(row):
+            ax = fig.add_subplot(n_rows, PREVIEW_COLUMNS, r * PREVIEW_COLUMNS + c + 1)
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if t["data"] is None:
+                ax.set_facecolor((0.5, 0.5, 0.5))
+                ax.set_title(f"{t['title']}: not measured", fontsize=7)
+                continue
+            if t["kind"] == "scalar":
+                lo, hi = ranges[t["group"]]
+                im = ax.imshow(np.ma.masked_invalid(t["data"]), cmap=cmap, vmin=lo, vmax=hi,
+                               interpolation="nearest")
+                cb = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.03)
+                cb.ax.tick_params(labelsize=6)
+                cb.set_label(t["unit"], fontsize=6)
+                ax.set_title(f"{t['title']} [{t['unit']}]", fontsize=7)
+            else:
+                rgb, note = _display_rgb(t)
+                ax.imshow(rgb, interpolation="nearest")
+                ax.set_title(f"{t['title']} ({note})", fontsize=7)
+    fig.text(0.01, 0.005, "grey = unknown (NaN)", fontsize=6)
+    atomic_write(path, lambda tmp: fig.savefig(str(tmp), format="png", dpi=_DPI))
+
+
+def _preview_opencv(path: Path, rows: list[list[dict[str, Any]]], title: str) -> None:
+    """numpy + OpenCV fallback (no matplotlib): same grid, labels and a colour bar strip per scalar tile."""
+    import cv2
+
+    tw, th = PREVIEW_TILE_PX
+    h_px, w_px = preview_size_px(len(rows))
+    sheet = np.full((h_px, w_px, 3), 255, np.uint8)
+    ranges = _scalar_ranges(rows)
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    band, bar = 22, 26
+    for r, row in enumerate(rows):
+        for c, t in enumerate(row):
+            y0, x0 = r * th, c * tw
+            tile = sheet[y0:y0 + th, x0:x0 + tw]
+            label = t["title"]
+            area_h = th - band - bar
+            if t["data"] is None:
+                tile[band:th - bar] = 128
+                label += ": not measured"
+            else:
+                if t["kind"] == "scalar":
+                    lo, hi = ranges[t["group"]]
+                    a = np.asarray(t["data"], dtype=np.float64)
+                    u8 = np.round(np.clip((np.nan_to_num(a, nan=lo) - lo) / (hi - lo), 0, 1) * 255).astype(np.uint8)
+                    img = cv2.applyColorMap(u8, cv2.COLORMAP_VIRIDIS)[..., ::-1]  # BGR -> RGB
+                    img[~np.isfinite(a)] = 128
+                    label += f" [{t['unit']}]"
+                    ramp = np.round(np.linspace(0, 255, tw - 80)).astype(np.uint8)[None, :].repeat(8, 0)
+                    strip = cv2.applyColorMap(ramp, cv2.COLORMAP_VIRIDIS)[..., ::-1]
+                    tile[th - bar + 2:th - bar + 10, 40:tw - 40] = strip
+                    for txt, xx in ((f"{lo:.3g}", 2), (f"{hi:.3g}", tw - 78)):
+                        cv2.putText(tile, txt, (xx, th - 4), font, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
+                else:
+                    rgb, note = _display_rgb(t)
+                    img = np.round(rgb * 255).astype(np.uint8)
+                    label += f" ({note})"
+                h, w = img.shape[:2]
+                s = min(area_h / h, (tw - 4) / w)
+                nh, nw = max(1, int(h * s)), max(1, int(w * s))
+                img = cv2.resize(np.ascontiguousarray(img), (nw, nh), interpolation=cv2.INTER_NEAREST)
+                oy, ox = band + (area_h - nh) // 2, (tw - nw) // 2
+                tile[oy:oy + nh, ox:ox + nw] = img
+            cv2.putText(tile, label[:48], (4, 15), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+    del title  # the sidecar describes the sheet; tiles carry their own labels
+    write_png8(path, sheet.astype(np.float32) / 255.0)
+
+
+def _write_preview(path: Path, arrays: Mapping[str, NDArray[np.float32]], title: str,
+                   backend: str) -> tuple[str, list[list[str]], tuple[int, int]]:
+    rows = _tiles(arrays)
+    if backend not in ("auto", "matplotlib", "opencv"):
+        raise ValueError(f"preview backend must be auto, matplotlib or opencv, got {backend!r}")
+    used = backend
+    if backend == "auto":  # matplotlib is the optional 'plots' extra
+        import importlib.util
+        used = "matplotlib" if importlib.util.find_spec("matplotlib") is not None else "opencv"
+    (_preview_matplotlib if used == "matplotlib" else _preview_opencv)(path, rows, title)
+    return used, [[t["title"] for t in row] for row in rows], preview_size_px(len(rows))
+
+
+# ---------------------------------------------------------------------------------------------- API
+def write_maps(out_dir: str | os.PathLike[str], maps: GradientMaps, diffusion: DiffusionMaps | None, *,
+               fmt: str = "exr", provenance: Mapping[str, Any], seed: SeedEstimate | None = None,
+               preview: str = "auto", extra_sidecar: Mapping[str, Any] | None = None) -> dict[str, Path]:
+    """Write every available map as one float file, ``masks.png``, ``preview.png`` and ``maps.json``.
+
+    ``fmt``: "exr" (float32 OpenEXR, ZIP) or "tiff" (float32 TIFF, zlib). ``diffusion``: the grounded per-pixel
+    estimate (:func:`estimation.diffusion.estimate_diffusion` / ``estimate_sphere(...).maps``) or None (no
+    geometry: no diffusion files, ``diffusion_unknown`` set everywhere in ``masks.png``). ``seed``: the seed's
+    estimate (:func:`estimation.diffusion.diffusion_seed`) or None. ``provenance`` is stored verbatim in the
+    sidecar (capture folder, frames with sha256, calibration, parameters); ``extra_sidecar`` adds top-level keys
+    (e.g. a summary). ``preview``: "auto" (matplotlib if installed, else OpenCV), "matplotlib" or "opencv".
+
+    Returns {name: path} for every file written (map names of :data:`MAP_SPECS`, plus "masks", "preview",
+    "sidecar"). Existing files of the same names are replaced atomically; others in ``out_dir`` are left alone.
+    """
+    if fmt not in ("exr", "tiff"):
+        raise ValueError(f"fmt must be 'exr' or 'tiff', got {fmt!r}")
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    H, W = maps.shape
+    arrays = _collect(maps, diffusion, seed)
+    ext = ".exr" if fmt == "exr" else ".tif"
+    written: dict[str, Path] = {}
+    files: dict[str, Any] = {}
+    for name, arr in arrays.items():
+        spec = MAP_SPECS[name]
+        p = out / f"{name}{ext}"
+        meta = {"quantity": spec.quantity, "unit": spec.unit, "channels": ",".join(spec.channels),
+                "nan": "unknown", "software": "sssrig", "sidecar": SIDECAR}
+        if fmt == "exr":
+            write_exr(p, arr, attributes={f"sssrig_{k}": v for k, v in meta.items()})
+        else:
+            write_float_tiff(p, arr, description=json.dumps(meta))
+        written[name] = p
+        files[name] = {"file": p.name, **spec.sidecar(), "sha256": _sha256(p),
+                       "known_fraction": [float(np.isfinite(arr[..., c]).mean()) for c in range(3)]}
+    bits = _mask_field(maps, diffusion)
+    pm = write_png8(out / MASKS, bits.astype(np.float32) / 255.0)
+    written["masks"] = pm
+    title = f"sssrig maps: {provenance.get('name', '')}".rstrip(": ")
+    backend, tiles, (ph, pw) = _write_preview(out / PREVIEW, arrays, title, preview)
+    written["preview"] = out / PREVIEW
+    sidecar: dict[str, Any] = {
+        "format": MAPS_FORMAT, "format_version": MAPS_FORMAT_VERSION,
+        "image": {"width_px": W, "height_px": H, "pixel_convention": "row 0 top, column 0 left, pixel centres at "
+                  "integer coordinates (estimation.camera)"},
+        "nan": "NaN (in every float file) = unknown; never a number where nothing is known",
+        "file_format": {"exr": "OpenEXR float32, ZIP, channels R,G,B (vectors: x,y,z stored as R,G,B)",
+                        "tiff": "TIFF float32, zlib, 3 samples per pixel (RGB photometric; vectors: x,y,z)"}[fmt],
+        "files": files,
+        "masks": {"file": MASKS, "sha256": _sha256(pm), "encoding": "8-bit RGB PNG; per colour channel a bit "
+                  "field (per-pixel masks are set in all three channels)", "bits": dict(MASK_BITS)},
+        "preview": {"file": PREVIEW, "backend": backend, "width_px": pw, "height_px": ph, "tiles": tiles,
+                    "note": "display-encoded for viewing only (sRGB albedo, (n+1)/2 normals, viridis scalars with "
+                            "a shared range per quantity); grey = unknown"},
+        "provenance": dict(provenance),
+    }
+    if extra_sidecar:
+        sidecar.update(dict(extra_sidecar))
+    written["sidecar"] = _write_json(out / SIDECAR, sidecar)
+    return written
+
+
+@dataclass(frozen=True)
+class LoadedMaps:
+    """Maps read back by :func:`read_maps`: float arrays (H, W, 3) by name, boolean masks by name (H, W, 3),
+    and the parsed sidecar."""
+
+    arrays: dict[str, NDArray[np.float32]]
+    masks: dict[str, NDArray[np.bool_]]
+    sidecar: dict[str, Any]
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return int(self.sidecar["image"]["height_px"]), int(self.sidecar["image"]["width_px"])
+
+
+def read_maps(out_dir: str | os.PathLike[str], *, verify: bool = True) -> LoadedMaps:
+    """Read a folder written by :func:`write_maps`. With ``verify`` every file's sha256 must match the sidecar.
+
+    Raises :class:`MapsError` naming the file for a missing/foreign sidecar, a missing or altered file, or a
+    shape that differs from the sidecar's image size.
+    """
+    out = Path(out_dir)
+    side_p = out / SIDECAR
+    if not side_p.is_file():
+        raise MapsError(side_p, "no such file: not a maps folder written by sssrig")
+    try:
+        side = json.loads(side_p.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise MapsError(side_p, f"not readable JSON ({exc})") from None
+    if side.get("format") != MAPS_FORMAT:
+        raise MapsError(side_p, f"field 'format': expected {MAPS_FORMAT!r}, got {side.get('format')!r}")
+    if side.get("format_version") != MAPS_FORMAT_VERSION:
+        raise MapsError(side_p, f"field 'format_version': expected {MAPS_FORMAT_VERSION}, "
+                                f"got {side.get('format_version')!r}")
+    shape = (int(side["image"]["height_px"]), int(side["image"]["width_px"]))
+    arrays: dict[str, NDArray[np.float32]] = {}
+    for name, entry in side["files"].items():
+        p = out / entry["file"]
+        a = _read_float(p)
+        if a.shape != (*shape, 3):
+            raise MapsError(p, f"shape {a.shape}, expected {(*shape, 3)} from maps.json")
+        if verify and _sha256(p) != entry["sha256"]:
+            raise MapsError(p, "sha256 differs from maps.json: the file was changed after it was written")
+        arrays[name] = a
+    import cv2
+    mp = out / side["masks"]["file"]
+    raw = cv2.imread(str(mp), cv2.IMREAD_UNCHANGED)
+    if raw is None or raw.shape != (*shape, 3):
+        raise MapsError(mp, f"expected an 8-bit RGB PNG of {shape[1]} x {shape[0]} px")
+    if verify and _sha256(mp) != side["masks"]["sha256"]:
+        raise MapsError(mp, "sha256 differs from maps.json: the file was changed after it was written")
+    bits = raw[..., ::-1]
+    masks = {k: (bits & b) != 0 for k, b in side["masks"]["bits"].items()}
+    return LoadedMaps(arrays, masks, side)
