@@ -1,0 +1,427 @@
+"""Next-event estimation to point lights from a scattering vertex inside the medium (numba kernels).
+
+For a vertex x reached by a camera walk travelling along d_cam, the in-scattered radiance due to an isotropic
+point light of radiant intensity I at L is  p(cos) * E_perp(x), where E_perp is the flux density that reaches x
+straight from L through the boundary and cos = (propagation of that light) . (-d_cam):
+
+- index-matched boundary (eta = 1): E_perp = I exp(-sigma_t l_in) / |L - x|^2, l_in the length of the segment
+  inside the medium (several pieces for non-convex meshes: occlusion is exact).
+- smooth dielectric (eta != 1): the light reaches x only along the refracted ray(s) through the boundary point(s)
+  b where Snell's law holds (stationary optical path, Fermat). Then E_perp = I F_t(eta, cos_1) exp(-sigma_t |x-b|) / J
+  with J = dA_perp/dOmega the cross-section at x of the refracted ray tube per unit solid angle at L (the
+  "generalized geometry term" of specular next-event estimation, Mitchell & Hanrahan 1992; Hanika, Droske,
+  Fascione 2015 "Manifold next event estimation"). Planar faces (half-space, slab, box) have one closed-form
+  solution per face:
+      J = (h / cos_1 + z / (eta cos_2)) cos_2 (h / cos_1^2 + z cos_1 / (eta cos_2^3)),
+  h the light's height over the face, z the vertex depth (J = |L - x|^2 at eta = 1). Spheres: all stationary
+  points on the great circle through L, x and the centre (bracketed by a scan, refined by bisection), J by
+  central finite differences of the refracted ray tube. Triangle meshes with eta != 1 are not supported
+  (every flat face would be a candidate); use eta = 1, environment/pattern lights or the profile tools.
+
+Not captured (documented bias of the point-light estimator with eta != 1): light that reaches its first scattering
+vertex only after a specular reflection inside the medium, bounded by F_r exp(-sigma_t * chord); zero for the
+half-space, negligible for a sphere or box many mean free paths across.
+"""
+from __future__ import annotations
+
+import math
+
+from numba import njit
+
+from .optics import fresnel_r, hg_phase, orthonormal_basis, refract
+from .shapes import BOX, HALF_SPACE, SLAB, SPHERE, nearest_hit, surface_distance
+
+__all__ = ["point_light_nee", "light_contribution", "min_inside_length", "plane_connection", "sphere_connections",
+           "sphere_min_inside_length"]
+
+_FD_STEP = 1e-6
+
+
+@njit(cache=True, error_model="numpy")
+def plane_connection(p0x, p0y, p0z, nx, ny, nz, x, y, z, lx, ly, lz, eta):
+    """Refraction point on the plane (p0, outward n) connecting interior x to exterior L.
+
+    Returns (ok, bx, by, bz, J, cos_1, inside_len): J = dA_perp/dOmega [mm^2/sr], cos_1 the outside cosine.
+    """
+    h = (lx - p0x) * nx + (ly - p0y) * ny + (lz - p0z) * nz
+    dep = (p0x - x) * nx + (p0y - y) * ny + (p0z - z) * nz
+    if not (h > 0.0 and dep >= 0.0):
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    wx, wy, wz = x - lx, y - ly, z - lz
+    wn = wx * nx + wy * ny + wz * nz
+    wx, wy, wz = wx - wn * nx, wy - wn * ny, wz - wn * nz
+    rho = math.sqrt(wx * wx + wy * wy + wz * wz)
+    fx, fy, fz = lx - h * nx, ly - h * ny, lz - h * nz  # foot of L on the plane
+    if rho <= 1e-14 * (h + dep):
+        J = (h + dep / eta) ** 2
+        return True, fx, fy, fz, J, 1.0, dep
+    ux, uy, uz = wx / rho, wy / rho, wz / rho
+    lo, hi = 0.0, rho
+    a = min(max(eta * rho * h / (dep + eta * h), 0.0), rho)
+    tol = 1e-14 * (rho + h + dep)
+    for _ in range(100):
+        s1 = math.sqrt(a * a + h * h)
+        r2 = rho - a
+        s2 = math.sqrt(r2 * r2 + dep * dep)
+        f = a / s1 - eta * r2 / s2
+        if f > 0.0:
+            hi = a
+        else:
+            lo = a
+        fp = h * h / (s1 * s1 * s1) + (eta * dep * dep / (s2 * s2 * s2) if s2 > 0.0 else 0.0)
+        an = a - f / fp if fp > 0.0 else 0.5 * (lo + hi)
+        if not (lo < an < hi):
+            an = 0.5 * (lo + hi)
+        if abs(an - a) <= tol:
+            a = an
+            break
+        a = an
+    s1 = math.sqrt(a * a + h * h)
+    r2 = rho - a
+    s2 = math.sqrt(r2 * r2 + dep * dep)
+    c1 = h / s1
+    c2 = dep / s2
+    if c2 <= 0.0:
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    J = (h / c1 + dep / (eta * c2)) * c2 * (h / (c1 * c1) + dep * c1 / (eta * c2 * c2 * c2))
+    return True, fx + a * ux, fy + a * uy, fz + a * uz, J, c1, s2
+
+
+@njit(cache=True, error_model="numpy")
+def _sphere_f(phi, R, D, x1, x2, eta):
+    """Snell residual t.u_in - eta t.u_ref at b(phi) on the great circle (2-D coordinates, L = (D, 0))."""
+    cb = math.cos(phi)
+    sb = math.sin(phi)
+    bx, by = R * cb, R * sb
+    ix, iy = bx - D, by
+    il = math.sqrt(ix * ix + iy * iy)
+    rx, ry = x1 - bx, x2 - by
+    rl = math.sqrt(rx * rx + ry * ry)
+    if rl <= 0.0:
+        return 0.0
+    return (-sb * ix + cb * iy) / il - eta * (-sb * rx + cb * ry) / rl
+
+
+@njit(cache=True, error_model="numpy")
+def _refract_sphere_to_plane(cx, cy, cz, R, lx, ly, lz, dx, dy, dz, eta, x, y, z, d0x, d0y, d0z):
+    """Trace L + t d to the sphere, refract, and return the crossing with the plane through x normal to d0."""
+    px, py, pz = lx - cx, ly - cy, lz - cz
+    b = px * dx + py * dy + pz * dz
+    c = px * px + py * py + pz * pz - R * R
+    disc = b * b - c
+    if disc < 0.0:
+        return False, 0.0, 0.0, 0.0
+    t = -b - math.sqrt(disc)
+    hx, hy, hz = lx + t * dx, ly + t * dy, lz + t * dz
+    nx, ny, nz = (hx - cx) / R, (hy - cy) / R, (hz - cz) / R
+    ok, rx, ry, rz = refract(dx, dy, dz, nx, ny, nz, eta)
+    if not ok:
+        return False, 0.0, 0.0, 0.0
+    den = rx * d0x + ry * d0y + rz * d0z
+    if den <= 0.0:
+        return False, 0.0, 0.0, 0.0
+    s = ((x - hx) * d0x + (y - hy) * d0y + (z - hz) * d0z) / den
+    return True, hx + s * rx, hy + s * ry, hz + s * rz
+
+
+@njit(cache=True, error_model="numpy")
+def _illinois(lo, hi, flo, fhi, R, D, x1, x2, eta):
+    """Root of the Snell residual in [lo, hi] (sign change) by the Illinois variant of regula falsi."""
+    side = 0
+    for _ in range(100):
+        den = fhi - flo
+        m = hi - fhi * (hi - lo) / den if den != 0.0 else 0.5 * (lo + hi)
+        if not (min(lo, hi) <= m <= max(lo, hi)):
+            m = 0.5 * (lo + hi)
+        fm = _sphere_f(m, R, D, x1, x2, eta)
+        if fm == 0.0 or abs(hi - lo) < 1e-14:
+            return m
+        if (fm < 0.0) == (fhi < 0.0):
+            hi, fhi = m, fm
+            if side == -1:
+                flo *= 0.5
+            side = -1
+        else:
+            lo, flo = m, fm
+            if side == 1:
+                fhi *= 0.5
+            side = 1
+    return 0.5 * (lo + hi)
+
+
+@njit(cache=True, error_model="numpy")
+def _sphere_frame(cx, cy, cz, R, x, y, z, lx, ly, lz):
+    """2-D frame of the plane (centre, L, x): D = |L - c|, e1 towards L, e2, x = (x1, x2 >= 0), psi, phi_v."""
+    qx, qy, qz = lx - cx, ly - cy, lz - cz
+    D = math.sqrt(qx * qx + qy * qy + qz * qz)
+    e1x, e1y, e1z = qx / D, qy / D, qz / D
+    rx, ry, rz = x - cx, y - cy, z - cz
+    x1 = rx * e1x + ry * e1y + rz * e1z
+    px, py, pz = rx - x1 * e1x, ry - x1 * e1y, rz - x1 * e1z
+    x2 = math.sqrt(px * px + py * py + pz * pz)
+    if x2 > 1e-12 * R:
+        e2x, e2y, e2z = px / x2, py / x2, pz / x2
+    else:
+        t1, _t2 = orthonormal_basis(e1x, e1y, e1z)
+        e2x, e2y, e2z = t1[0], t1[1], t1[2]
+        x2 = 0.0
+    phiv = math.acos(min(1.0, R / D)) * (1.0 - 1e-9)
+    psi = math.atan2(x2, x1)
+    return D, e1x, e1y, e1z, e2x, e2y, e2z, x1, x2, psi, phiv
+
+
+@njit(cache=True, error_model="numpy")
+def sphere_min_inside_length(cx, cy, cz, R, x, y, z, lx, ly, lz):
+    """Lower bound on |x - b| over the cap of the sphere visible from L (bounds the transmittance)."""
+    D, e1x, e1y, e1z, e2x, e2y, e2z, x1, x2, psi, phiv = _sphere_frame(cx, cy, cz, R, x, y, z, lx, ly, lz)
+    if D <= R:
+        return 0.0
+    if psi <= phiv:
+        return max(0.0, R - math.sqrt(x1 * x1 + x2 * x2))
+    bx, by = R * math.cos(phiv), R * math.sin(phiv)
+    return math.sqrt((x1 - bx) ** 2 + (x2 - by) ** 2)
+
+
+@njit(cache=True, error_model="numpy")
+def _sphere_term(phi, cx, cy, cz, R, e1x, e1y, e1z, e2x, e2y, e2z, x, y, z, lx, ly, lz, eta, sigma_t, g,
+                 dcx, dcy, dcz):
+    cb, sb = math.cos(phi), math.sin(phi)
+    bx = cx + R * (cb * e1x + sb * e2x)
+    by = cy + R * (cb * e1y + sb * e2y)
+    bz = cz + R * (cb * e1z + sb * e2z)
+    ix, iy, iz = bx - lx, by - ly, bz - lz
+    il = math.sqrt(ix * ix + iy * iy + iz * iz)
+    ix, iy, iz = ix / il, iy / il, iz / il
+    ux, uy, uz = x - bx, y - by, z - bz
+    ul = math.sqrt(ux * ux + uy * uy + uz * uz)
+    if ul <= 0.0:
+        return 0.0
+    ux, uy, uz = ux / ul, uy / ul, uz / ul
+    nbx, nby, nbz = (bx - cx) / R, (by - cy) / R, (bz - cz) / R
+    cos1 = -(ix * nbx + iy * nby + iz * nbz)
+    # ray-tube cross-section at x per unit solid angle at L (central differences)
+    a1, a2 = orthonormal_basis(ix, iy, iz)
+    okp1, q1x, q1y, q1z = _fd_point(cx, cy, cz, R, lx, ly, lz, ix, iy, iz, a1[0], a1[1], a1[2],
+                                    _FD_STEP, eta, x, y, z, ux, uy, uz)
+    okm1, r1x, r1y, r1z = _fd_point(cx, cy, cz, R, lx, ly, lz, ix, iy, iz, a1[0], a1[1], a1[2],
+                                    -_FD_STEP, eta, x, y, z, ux, uy, uz)
+    okp2, q2x, q2y, q2z = _fd_point(cx, cy, cz, R, lx, ly, lz, ix, iy, iz, a2[0], a2[1], a2[2],
+                                    _FD_STEP, eta, x, y, z, ux, uy, uz)
+    okm2, r2x, r2y, r2z = _fd_point(cx, cy, cz, R, lx, ly, lz, ix, iy, iz, a2[0], a2[1], a2[2],
+                                    -_FD_STEP, eta, x, y, z, ux, uy, uz)
+    if not (okp1 and okm1 and okp2 and okm2):
+        return 0.0
+    s = 0.5 / _FD_STEP
+    g1x, g1y, g1z = (q1x - r1x) * s, (q1y - r1y) * s, (q1z - r1z) * s
+    g2x, g2y, g2z = (q2x - r2x) * s, (q2y - r2y) * s, (q2z - r2z) * s
+    cxp = g1y * g2z - g1z * g2y
+    cyp = g1z * g2x - g1x * g2z
+    czp = g1x * g2y - g1y * g2x
+    J = math.sqrt(cxp * cxp + cyp * cyp + czp * czp)
+    if not J > 0.0:
+        return 0.0
+    ft = 1.0 - fresnel_r(eta, cos1)
+    cs = -(ux * dcx + uy * dcy + uz * dcz)
+    return hg_phase(g, cs) * ft * math.exp(-sigma_t * ul) / J
+
+
+@njit(cache=True, error_model="numpy")
+def sphere_connections(cx, cy, cz, R, x, y, z, lx, ly, lz, eta, sigma_t, g, dcx, dcy, dcz, n_scan):
+    """Sum over refraction points b on the sphere of p(cos) F_t exp(-sigma_t |x - b|) / J (per unit intensity).
+
+    When x lies inside the cone of the visible cap (angle psi <= phi_v from the axis centre -> L) there is exactly
+    one stationary point, bracketed by [0, psi] (checked numerically over eta in [0.5, 3] in the tests); beyond
+    it (the region behind the sphere's limb, reachable through refraction caustics) up to three exist, found by a
+    scan of ``n_scan`` intervals over the visible arc.
+    """
+    D, e1x, e1y, e1z, e2x, e2y, e2z, x1, x2, psi, phiv = _sphere_frame(cx, cy, cz, R, x, y, z, lx, ly, lz)
+    if D <= R:
+        return 0.0
+    if psi <= phiv:
+        f0 = _sphere_f(0.0, R, D, x1, x2, eta)
+        f1 = _sphere_f(psi, R, D, x1, x2, eta)
+        if f0 == 0.0:
+            phi = 0.0
+        elif f1 == 0.0:
+            phi = psi
+        elif (f0 < 0.0) != (f1 < 0.0):
+            phi = _illinois(0.0, psi, f0, f1, R, D, x1, x2, eta)
+        else:
+            return 0.0
+        return _sphere_term(phi, cx, cy, cz, R, e1x, e1y, e1z, e2x, e2y, e2z, x, y, z, lx, ly, lz, eta, sigma_t,
+                            g, dcx, dcy, dcz)
+    total = 0.0
+    f_prev = _sphere_f(-phiv, R, D, x1, x2, eta)
+    a_prev = -phiv
+    for k in range(1, n_scan + 1):
+        a_k = -phiv + 2.0 * phiv * k / n_scan
+        f_k = _sphere_f(a_k, R, D, x1, x2, eta)
+        if f_k == 0.0 or (f_prev != 0.0 and (f_prev < 0.0) != (f_k < 0.0)):
+            phi = a_k if f_k == 0.0 else _illinois(a_prev, a_k, f_prev, f_k, R, D, x1, x2, eta)
+            total += _sphere_term(phi, cx, cy, cz, R, e1x, e1y, e1z, e2x, e2y, e2z, x, y, z, lx, ly, lz, eta,
+                                  sigma_t, g, dcx, dcy, dcz)
+        f_prev, a_prev = f_k, a_k
+    return total
+
+
+@njit(cache=True, error_model="numpy")
+def _fd_point(cx, cy, cz, R, lx, ly, lz, ix, iy, iz, ax, ay, az, step, eta, x, y, z, ux, uy, uz):
+    """Perturbed ray normalize(i + step a) from L, refracted by the sphere, crossing the plane at x normal to u."""
+    dx, dy, dz = ix + step * ax, iy + step * ay, iz + step * az
+    s = 1.0 / math.sqrt(dx * dx + dy * dy + dz * dz)
+    return _refract_sphere_to_plane(cx, cy, cz, R, lx, ly, lz, dx * s, dy * s, dz * s, eta, x, y, z, ux, uy, uz)
+
+
+@njit(cache=True, error_model="numpy")
+def _plane_term(p0x, p0y, p0z, nx, ny, nz, x, y, z, lx, ly, lz, eta, sigma_t, g, dcx, dcy, dcz,
+                bounded, lo0, hi0, lo1, hi1, ax0, ax1, tol):
+    ok, bx, by, bz, J, c1, l_in = plane_connection(p0x, p0y, p0z, nx, ny, nz, x, y, z, lx, ly, lz, eta)
+    if not ok or J <= 0.0:
+        return 0.0
+    if bounded:
+        b = (bx, by, bz)
+        if b[ax0] < lo0 - tol or b[ax0] > hi0 + tol or b[ax1] < lo1 - tol or b[ax1] > hi1 + tol:
+            return 0.0
+    ux, uy, uz = x - bx, y - by, z - bz
+    if l_in > 0.0:
+        ux, uy, uz = ux / l_in, uy / l_in, uz / l_in
+    else:
+        ux, uy, uz = -nx, -ny, -nz
+    cs = -(ux * dcx + uy * dcy + uz * dcz)
+    return hg_phase(g, cs) * (1.0 - fresnel_r(eta, c1)) * math.exp(-sigma_t * l_in) / J
+
+
+@njit(cache=True, error_model="numpy")
+def min_inside_length(kind, prm, x, y, z, lx, ly, lz, eta):
+    """Lower bound on the length inside the medium of any connection from x to the light (for roulette)."""
+    if abs(eta - 1.0) < 1e-12:
+        return surface_distance(kind, prm, x, y, z)
+    if kind == HALF_SPACE:
+        return max(0.0, prm[0] - z)
+    if kind == SLAB:
+        return max(0.0, prm[0] - z) if lz > prm[0] else max(0.0, z - prm[1])
+    if kind == BOX:
+        p = (x, y, z)
+        l = (lx, ly, lz)
+        best = math.inf
+        for a in range(3):
+            if l[a] > prm[3 + a]:
+                best = min(best, prm[3 + a] - p[a])
+            if l[a] < prm[a]:
+                best = min(best, p[a] - prm[a])
+        return max(0.0, best) if best < math.inf else 0.0
+    if kind == SPHERE:
+        return sphere_min_inside_length(prm[0], prm[1], prm[2], prm[3], x, y, z, lx, ly, lz)
+    return 0.0
+
+
+@njit(cache=True, error_model="numpy")
+def light_contribution(kind, prm, nbox, nidx, tris, eps_t, stack, x, y, z, dcx, dcy, dcz, lx, ly, lz,
+                       sigma_t, g, eta, n_scan):
+    """p(cos) E_perp / I at x for a unit-intensity point light at L (see module docstring)."""
+    if abs(eta - 1.0) < 1e-12:
+        ux, uy, uz = lx - x, ly - y, lz - z
+        dist = math.sqrt(ux * ux + uy * uy + uz * uz)
+        if dist <= 0.0:
+            return 0.0
+        ux, uy, uz = ux / dist, uy / dist, uz / dist
+        px, py, pz = x, y, z
+        remaining = dist
+        inside = True
+        l_in = 0.0
+        for _ in range(256):
+            t, nx_, ny_, nz_ = nearest_hit(kind, prm, nbox, nidx, tris, px, py, pz, ux, uy, uz, eps_t, stack)
+            if t >= remaining:
+                if inside:
+                    l_in += remaining
+                break
+            if inside:
+                l_in += t
+            inside = not inside
+            px, py, pz = px + t * ux, py + t * uy, pz + t * uz
+            remaining -= t
+        if inside:  # the light is inside the medium: not a valid configuration
+            return 0.0
+        cs = ux * dcx + uy * dcy + uz * dcz
+        return hg_phase(g, cs) * math.exp(-sigma_t * l_in) / (dist * dist)
+    if kind == HALF_SPACE:
+        return _plane_term(0.0, 0.0, prm[0], 0.0, 0.0, 1.0, x, y, z, lx, ly, lz, eta, sigma_t, g, dcx, dcy, dcz,
+                           False, 0.0, 0.0, 0.0, 0.0, 0, 1, 0.0)
+    if kind == SLAB:
+        tot = 0.0
+        if lz > prm[0]:
+            tot += _plane_term(0.0, 0.0, prm[0], 0.0, 0.0, 1.0, x, y, z, lx, ly, lz, eta, sigma_t, g,
+                               dcx, dcy, dcz, False, 0.0, 0.0, 0.0, 0.0, 0, 1, 0.0)
+        if lz < prm[1]:
+            tot += _plane_term(0.0, 0.0, prm[1], 0.0, 0.0, -1.0, x, y, z, lx, ly, lz, eta, sigma_t, g,
+                               dcx, dcy, dcz, False, 0.0, 0.0, 0.0, 0.0, 0, 1, 0.0)
+        return tot
+    if kind == BOX:
+        tot = 0.0
+        l = (lx, ly, lz)
+        tol = eps_t
+        for a in range(3):
+            a0 = (a + 1) % 3
+            a1 = (a + 2) % 3
+            for side in range(2):
+                s = 1.0 if side == 1 else -1.0
+                plane = prm[3 + a] if side == 1 else prm[a]
+                if s * (l[a] - plane) <= 0.0:
+                    continue
+                n0 = s if a == 0 else 0.0
+                n1 = s if a == 1 else 0.0
+                n2 = s if a == 2 else 0.0
+                p0x = plane if a == 0 else 0.0
+                p0y = plane if a == 1 else 0.0
+                p0z = plane if a == 2 else 0.0
+                tot += _plane_term(p0x, p0y, p0z, n0, n1, n2, x, y, z, lx, ly, lz, eta, sigma_t, g,
+                                   dcx, dcy, dcz, True, prm[a0], prm[3 + a0], prm[a1], prm[3 + a1], a0, a1, tol)
+        return tot
+    if kind == SPHERE:
+        return sphere_connections(prm[0], prm[1], prm[2], prm[3], x, y, z, lx, ly, lz, eta, sigma_t, g,
+                                  dcx, dcy, dcz, n_scan)
+    return 0.0
+
+
+@njit(cache=True, error_model="numpy")
+def _rouletted_contribution(kind, prm, nbox, nidx, tris, eps_t, stack, x, y, z, dcx, dcy, dcz, lx, ly, lz,
+                            sigma_t, g, eta, n_scan, nee_tau, u_rr):
+    """:func:`light_contribution` evaluated with probability q = min(1, exp(-sigma_t l_min) / nee_tau) and
+    divided by q (unbiased); l_min bounds the connection's length inside the medium from below."""
+    q = min(1.0, math.exp(-sigma_t * min_inside_length(kind, prm, x, y, z, lx, ly, lz, eta)) / nee_tau)
+    if not u_rr < q:
+        return 0.0
+    return light_contribution(kind, prm, nbox, nidx, tris, eps_t, stack, x, y, z, dcx, dcy, dcz, lx, ly, lz,
+                              sigma_t, g, eta, n_scan) / q
+
+
+@njit(cache=True, error_model="numpy")
+def point_light_nee(kind, prm, nbox, nidx, tris, eps_t, stack, x, y, z, dcx, dcy, dcz, sigma_t, g, eta,
+                    light_pos, light_int, light_cdf, sample_one, n_scan, nee_tau, u_rr, u_pick):
+    """Sum over lights (or one light drawn with probability proportional to its intensity, ``sample_one``, using
+    ``u_pick``) of I p(cos) E_perp / I, each connection Russian-rouletted with ``u_rr`` (see
+    :func:`_rouletted_contribution`)."""
+    n = light_pos.shape[0]
+    if n == 0:
+        return 0.0
+    if not sample_one:
+        tot = 0.0
+        for k in range(n):
+            if light_int[k] > 0.0:
+                tot += light_int[k] * _rouletted_contribution(
+                    kind, prm, nbox, nidx, tris, eps_t, stack, x, y, z, dcx, dcy, dcz, light_pos[k, 0],
+                    light_pos[k, 1], light_pos[k, 2], sigma_t, g, eta, n_scan, nee_tau, u_rr)
+        return tot
+    lo, hi = 0, n - 1
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if light_cdf[mid] < u_pick:
+            lo = mid + 1
+        else:
+            hi = mid
+    pmf = light_cdf[lo] - (light_cdf[lo - 1] if lo > 0 else 0.0)
+    if pmf <= 0.0:
+        return 0.0
+    return light_int[lo] / pmf * _rouletted_contribution(
+        kind, prm, nbox, nidx, tris, eps_t, stack, x, y, z, dcx, dcy, dcz, light_pos[lo, 0], light_pos[lo, 1],
+        light_pos[lo, 2], sigma_t, g, eta, n_scan, nee_tau, u_rr)

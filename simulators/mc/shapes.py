@@ -1,0 +1,412 @@
+"""Shapes that bound a homogeneous medium: half-space, slab, sphere, axis-aligned box and closed triangle meshes.
+
+Every shape is reduced to a :class:`Geometry` record of plain arrays for the numba kernels:
+``kind`` (one of :data:`HALF_SPACE`, :data:`SLAB`, :data:`SPHERE`, :data:`BOX`, :data:`MESH`), float ``params``,
+and for meshes a bounding-volume hierarchy (median split on the longest centroid axis, leaves of <= 4 triangles)
+built here in numpy and traversed by :func:`nearest_hit` in numba (no trimesh/embree call inside the walk).
+
+:func:`nearest_hit` is the one query the kernels need: the first crossing of the boundary along a ray with
+t > eps_t, from inside or outside, with the *outward* unit normal there. Positions are nudged by ``nudge`` along
+the normal after a boundary event so that the next query does not find the same crossing again.
+
+Conventions: millimetres; the half-space is z <= top_z_mm (surface normal +z) and the slab
+top_z_mm - thickness_mm <= z <= top_z_mm, so a camera or light above z = top_z_mm sees the surface.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, NamedTuple, Union
+
+import numpy as np
+import numpy.typing as npt
+from numba import njit
+
+__all__ = ["HALF_SPACE", "SLAB", "SPHERE", "BOX", "MESH", "Geometry", "HalfSpace", "Slab", "Sphere", "Box",
+           "Mesh", "Shape", "nearest_hit", "surface_distance", "STACK_SIZE"]
+
+HALF_SPACE, SLAB, SPHERE, BOX, MESH = 0, 1, 2, 3, 4
+STACK_SIZE = 64
+_INF = math.inf
+
+FloatArray = npt.NDArray[np.float64]
+
+
+class Geometry(NamedTuple):
+    """Arrays describing one shape to the kernels (see module docstring)."""
+
+    kind: int
+    params: FloatArray          # (8,)
+    nodes_box: FloatArray       # (N, 6) min xyz, max xyz (meshes; (1, 6) dummy otherwise)
+    nodes_idx: npt.NDArray[np.int64]  # (N, 4) left, right, first triangle, triangle count (count > 0: leaf)
+    triangles: FloatArray       # (M, 12) v0, e1 = v1 - v0, e2 = v2 - v0, outward unit normal
+    eps_t: float                # minimum hit distance
+    nudge: float                # offset along the normal after a boundary event
+    convex: bool                # a ray leaving the medium never re-enters it
+    scale_mm: float             # size and distance from the origin (sets eps_t = 1e-12 and nudge = 1e-9 of it)
+
+
+def _dummy_bvh() -> tuple[FloatArray, npt.NDArray[np.int64], FloatArray]:
+    return np.zeros((1, 6)), np.zeros((1, 4), dtype=np.int64), np.zeros((1, 12))
+
+
+def _geometry(kind: int, params: list[float], scale: float, convex: bool = True,
+              bvh: tuple[FloatArray, npt.NDArray[np.int64], FloatArray] | None = None) -> Geometry:
+    p = np.zeros(8)
+    p[:len(params)] = params
+    nb, ni, tr = bvh if bvh is not None else _dummy_bvh()
+    scale = max(1.0, float(scale))
+    return Geometry(kind, p, nb, ni, tr, 1e-12 * scale, 1e-9 * scale, convex, scale)
+
+
+@dataclass(frozen=True)
+class HalfSpace:
+    """The medium z <= top_z_mm (surface normal +z)."""
+
+    top_z_mm: float = 0.0
+
+    def geometry(self) -> Geometry:
+        return _geometry(HALF_SPACE, [self.top_z_mm], abs(self.top_z_mm))
+
+    def contains(self, points_mm: npt.ArrayLike) -> npt.NDArray[np.bool_]:
+        return np.asarray(points_mm, float)[..., 2] <= self.top_z_mm
+
+
+@dataclass(frozen=True)
+class Slab:
+    """The medium top_z_mm - thickness_mm <= z <= top_z_mm (an infinite plane-parallel layer)."""
+
+    thickness_mm: float
+    top_z_mm: float = 0.0
+
+    def __post_init__(self) -> None:
+        if not self.thickness_mm > 0:
+            raise ValueError("thickness_mm must be > 0")
+
+    @property
+    def bottom_z_mm(self) -> float:
+        return self.top_z_mm - self.thickness_mm
+
+    def geometry(self) -> Geometry:
+        return _geometry(SLAB, [self.top_z_mm, self.bottom_z_mm],
+                         max(abs(self.top_z_mm), abs(self.bottom_z_mm), self.thickness_mm))
+
+    def contains(self, points_mm: npt.ArrayLike) -> npt.NDArray[np.bool_]:
+        z = np.asarray(points_mm, float)[..., 2]
+        return (z <= self.top_z_mm) & (z >= self.bottom_z_mm)
+
+
+@dataclass(frozen=True)
+class Sphere:
+    center_mm: tuple[float, float, float]
+    radius_mm: float
+
+    def __post_init__(self) -> None:
+        if not self.radius_mm > 0:
+            raise ValueError("radius_mm must be > 0")
+
+    def geometry(self) -> Geometry:
+        c = [float(v) for v in self.center_mm]
+        return _geometry(SPHERE, c + [float(self.radius_mm)], self.radius_mm + max(abs(v) for v in c))
+
+    def contains(self, points_mm: npt.ArrayLike) -> npt.NDArray[np.bool_]:
+        d = np.asarray(points_mm, float) - np.asarray(self.center_mm, float)
+        return np.sum(d * d, axis=-1) <= self.radius_mm ** 2
+
+
+@dataclass(frozen=True)
+class Box:
+    """Axis-aligned box [min_mm, max_mm]."""
+
+    min_mm: tuple[float, float, float]
+    max_mm: tuple[float, float, float]
+
+    def __post_init__(self) -> None:
+        if not np.all(np.asarray(self.max_mm, float) > np.asarray(self.min_mm, float)):
+            raise ValueError("max_mm must exceed min_mm on every axis")
+
+    def geometry(self) -> Geometry:
+        lo = [float(v) for v in self.min_mm]
+        hi = [float(v) for v in self.max_mm]
+        return _geometry(BOX, lo + hi, max(abs(v) for v in lo + hi))
+
+    def contains(self, points_mm: npt.ArrayLike) -> npt.NDArray[np.bool_]:
+        p = np.asarray(points_mm, float)
+        return np.all((p >= np.asarray(self.min_mm)) & (p <= np.asarray(self.max_mm)), axis=-1)
+
+
+def build_bvh(vertices: FloatArray, faces: npt.NDArray[np.int64], leaf_size: int = 4
+              ) -> tuple[FloatArray, npt.NDArray[np.int64], FloatArray]:
+    """Median-split BVH over triangles: (nodes_box (N, 6), nodes_idx (N, 4), triangles (M, 12)) in traversal
+    order (node 0 is the root; triangles reordered so that every leaf owns a contiguous range)."""
+    tri = np.asarray(vertices, float)[np.asarray(faces)]            # (M, 3, 3)
+    if len(tri) == 0:
+        raise ValueError("mesh has no faces")
+    cent = tri.mean(axis=1)
+    lo_t, hi_t = tri.min(axis=1), tri.max(axis=1)
+    order = np.arange(len(tri))
+    boxes: list[np.ndarray] = []
+    idx: list[list[int]] = []
+    # iterative build: (node id, start, end) over the permutation ``order``
+    boxes.append(np.zeros(6))
+    idx.append([-1, -1, 0, 0])
+    todo = [(0, 0, len(tri))]
+    while todo:
+        node, s, e = todo.pop()
+        sel = order[s:e]
+        boxes[node] = np.concatenate([lo_t[sel].min(axis=0), hi_t[sel].max(axis=0)])
+        if e - s <= leaf_size:
+            idx[node] = [-1, -1, s, e - s]
+            continue
+        c = cent[sel]
+        axis = int(np.argmax(c.max(axis=0) - c.min(axis=0)))
+        mid = (e - s) // 2
+        part = np.argpartition(c[:, axis], mid)
+        order[s:e] = sel[part]
+        left = len(boxes)
+        boxes.append(np.zeros(6))
+        idx.append([-1, -1, 0, 0])
+        right = len(boxes)
+        boxes.append(np.zeros(6))
+        idx.append([-1, -1, 0, 0])
+        idx[node] = [left, right, 0, 0]
+        todo.append((left, s, s + mid))
+        todo.append((right, s + mid, e))
+    t = tri[order]
+    e1 = t[:, 1] - t[:, 0]
+    e2 = t[:, 2] - t[:, 0]
+    n = np.cross(e1, e2)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    tris = np.concatenate([t[:, 0], e1, e2, n], axis=1)
+    return np.asarray(boxes), np.asarray(idx, dtype=np.int64), np.ascontiguousarray(tris)
+
+
+@dataclass(frozen=True)
+class Mesh:
+    """A closed (watertight) triangle mesh; face winding gives the outward normals (inverted if the signed volume
+    is negative). Needs ``trimesh`` only to read the mesh; ray queries use this module's BVH."""
+
+    mesh: Any  # trimesh.Trimesh
+    leaf_size: int = 4
+    _cache: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        if not bool(self.mesh.is_watertight):
+            raise ValueError("the mesh must be watertight (closed) to bound a medium")
+
+    def geometry(self) -> Geometry:
+        if "g" not in self._cache:
+            v = np.asarray(self.mesh.vertices, float)
+            f = np.asarray(self.mesh.faces, dtype=np.int64)
+            if float(self.mesh.volume) < 0:
+                f = f[:, ::-1]
+            bvh = build_bvh(v, f, self.leaf_size)
+            scale = float(np.abs(v).max() + np.ptp(v, axis=0).max())
+            self._cache["g"] = _geometry(MESH, [], scale, bool(self.mesh.is_convex), bvh)
+        return self._cache["g"]
+
+    def contains(self, points_mm: npt.ArrayLike) -> npt.NDArray[np.bool_]:
+        """Inside test by the parity of boundary crossings along a fixed oblique ray (this module's BVH)."""
+        g = self.geometry()
+        p = np.atleast_2d(np.asarray(points_mm, float)).reshape(-1, 3)
+        d = np.array([0.5773, 0.5774, 0.5775])
+        d /= np.linalg.norm(d)
+        stack = np.empty(STACK_SIZE, np.int64)
+        out = np.zeros(len(p), dtype=bool)
+        for i, q in enumerate(p):
+            o = q.copy()
+            n = 0
+            while n < 10_000:
+                t, *_ = nearest_hit(g.kind, g.params, g.nodes_box, g.nodes_idx, g.triangles, *o, *d, g.eps_t, stack)
+                if t == _INF:
+                    break
+                n += 1
+                o = o + (t + g.nudge) * d
+            out[i] = n % 2 == 1
+        return out
+
+
+Shape = Union[HalfSpace, Slab, Sphere, Box, Mesh]
+
+
+# ------------------------------------------------------------------------------------------------ numba queries
+@njit(cache=True, error_model="numpy")
+def _hit_sphere(prm, ox, oy, oz, dx, dy, dz, eps_t):
+    cx, cy, cz, r = prm[0], prm[1], prm[2], prm[3]
+    px, py, pz = ox - cx, oy - cy, oz - cz
+    b = px * dx + py * dy + pz * dz
+    c = px * px + py * py + pz * pz - r * r
+    disc = b * b - c
+    if disc < 0.0:
+        return _INF, 0.0, 0.0, 0.0
+    sq = math.sqrt(disc)
+    q = -(b + sq) if b > 0.0 else -(b - sq)  # stable roots q and c/q
+    t1 = q
+    t2 = c / q if q != 0.0 else 0.0
+    if t1 > t2:
+        t1, t2 = t2, t1
+    t = t1 if t1 > eps_t else t2
+    if not t > eps_t:
+        return _INF, 0.0, 0.0, 0.0
+    inv = 1.0 / r
+    return t, (px + t * dx) * inv, (py + t * dy) * inv, (pz + t * dz) * inv
+
+
+@njit(cache=True, error_model="numpy")
+def _hit_box(prm, ox, oy, oz, dx, dy, dz, eps_t):
+    o = (ox, oy, oz)
+    d = (dx, dy, dz)
+    t_near = -_INF
+    t_far = _INF
+    ax_near = -1
+    ax_far = -1
+    s_near = 0.0
+    s_far = 0.0
+    for a in range(3):
+        lo = prm[a]
+        hi = prm[3 + a]
+        if d[a] == 0.0:
+            if o[a] < lo or o[a] > hi:
+                return _INF, 0.0, 0.0, 0.0
+            continue
+        inv = 1.0 / d[a]
+        t0 = (lo - o[a]) * inv
+        t1 = (hi - o[a]) * inv
+        # entering through lo when d > 0 (outward normal -e_a), through hi when d < 0 (+e_a)
+        if t0 < t1:
+            if t0 > t_near:
+                t_near, ax_near, s_near = t0, a, -1.0
+            if t1 < t_far:
+                t_far, ax_far, s_far = t1, a, 1.0
+        else:
+            if t1 > t_near:
+                t_near, ax_near, s_near = t1, a, 1.0
+            if t0 < t_far:
+                t_far, ax_far, s_far = t0, a, -1.0
+    if t_near > t_far:
+        return _INF, 0.0, 0.0, 0.0
+    if t_near > eps_t and ax_near >= 0:
+        t, a, s = t_near, ax_near, s_near
+    elif t_far > eps_t and ax_far >= 0:
+        t, a, s = t_far, ax_far, s_far
+    else:
+        return _INF, 0.0, 0.0, 0.0
+    n0 = s if a == 0 else 0.0
+    n1 = s if a == 1 else 0.0
+    n2 = s if a == 2 else 0.0
+    return t, n0, n1, n2
+
+
+@njit(cache=True, error_model="numpy")
+def _hit_mesh(nbox, nidx, tris, ox, oy, oz, dx, dy, dz, eps_t, stack):
+    ix = 1.0 / dx
+    iy = 1.0 / dy
+    iz = 1.0 / dz
+    best = _INF
+    bn0 = 0.0
+    bn1 = 0.0
+    bn2 = 0.0
+    sp = 0
+    stack[0] = 0
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        node = stack[sp]
+        # slab test against the node box
+        tx0 = (nbox[node, 0] - ox) * ix
+        tx1 = (nbox[node, 3] - ox) * ix
+        if tx0 > tx1:
+            tx0, tx1 = tx1, tx0
+        ty0 = (nbox[node, 1] - oy) * iy
+        ty1 = (nbox[node, 4] - oy) * iy
+        if ty0 > ty1:
+            ty0, ty1 = ty1, ty0
+        tz0 = (nbox[node, 2] - oz) * iz
+        tz1 = (nbox[node, 5] - oz) * iz
+        if tz0 > tz1:
+            tz0, tz1 = tz1, tz0
+        tmin = max(tx0, max(ty0, tz0))
+        tmax = min(tx1, min(ty1, tz1))
+        if tmax < tmin or tmax < eps_t or tmin > best:  # NaN (0 * inf) never skips
+            continue
+        cnt = nidx[node, 3]
+        if cnt > 0:
+            first = nidx[node, 2]
+            for k in range(first, first + cnt):
+                # Moller-Trumbore
+                e1x, e1y, e1z = tris[k, 3], tris[k, 4], tris[k, 5]
+                e2x, e2y, e2z = tris[k, 6], tris[k, 7], tris[k, 8]
+                px = dy * e2z - dz * e2y
+                py = dz * e2x - dx * e2z
+                pz = dx * e2y - dy * e2x
+                det = e1x * px + e1y * py + e1z * pz
+                if det == 0.0:
+                    continue
+                inv = 1.0 / det
+                sx, sy, sz = ox - tris[k, 0], oy - tris[k, 1], oz - tris[k, 2]
+                u = (sx * px + sy * py + sz * pz) * inv
+                if u < 0.0 or u > 1.0:
+                    continue
+                qx = sy * e1z - sz * e1y
+                qy = sz * e1x - sx * e1z
+                qz = sx * e1y - sy * e1x
+                v = (dx * qx + dy * qy + dz * qz) * inv
+                if v < 0.0 or u + v > 1.0:
+                    continue
+                t = (e2x * qx + e2y * qy + e2z * qz) * inv
+                if t > eps_t and t < best:
+                    best = t
+                    bn0, bn1, bn2 = tris[k, 9], tris[k, 10], tris[k, 11]
+        else:
+            if sp + 2 <= stack.shape[0]:
+                stack[sp] = nidx[node, 0]
+                stack[sp + 1] = nidx[node, 1]
+                sp += 2
+    return best, bn0, bn1, bn2
+
+
+@njit(cache=True, error_model="numpy")
+def nearest_hit(kind, prm, nbox, nidx, tris, ox, oy, oz, dx, dy, dz, eps_t, stack):
+    """First boundary crossing along the ray o + t d with t > eps_t: (t, outward normal); t = inf if none."""
+    if kind == HALF_SPACE:
+        if dz == 0.0:
+            return _INF, 0.0, 0.0, 0.0
+        t = (prm[0] - oz) / dz
+        if t > eps_t:
+            return t, 0.0, 0.0, 1.0
+        return _INF, 0.0, 0.0, 0.0
+    if kind == SLAB:
+        if dz == 0.0:
+            return _INF, 0.0, 0.0, 0.0
+        t_top = (prm[0] - oz) / dz
+        t_bot = (prm[1] - oz) / dz
+        best = _INF
+        nz = 0.0
+        if t_top > eps_t:
+            best, nz = t_top, 1.0
+        if t_bot > eps_t and t_bot < best:
+            best, nz = t_bot, -1.0
+        return best, 0.0, 0.0, nz
+    if kind == SPHERE:
+        return _hit_sphere(prm, ox, oy, oz, dx, dy, dz, eps_t)
+    if kind == BOX:
+        return _hit_box(prm, ox, oy, oz, dx, dy, dz, eps_t)
+    return _hit_mesh(nbox, nidx, tris, ox, oy, oz, dx, dy, dz, eps_t, stack)
+
+
+@njit(cache=True, error_model="numpy")
+def surface_distance(kind, prm, x, y, z):
+    """A lower bound on the distance from an interior point to the boundary (0 when unknown: meshes)."""
+    if kind == HALF_SPACE:
+        return max(0.0, prm[0] - z)
+    if kind == SLAB:
+        return max(0.0, min(prm[0] - z, z - prm[1]))
+    if kind == SPHERE:
+        dx, dy, dz = x - prm[0], y - prm[1], z - prm[2]
+        return max(0.0, prm[3] - math.sqrt(dx * dx + dy * dy + dz * dz))
+    if kind == BOX:
+        m = min(x - prm[0], prm[3] - x)
+        m = min(m, min(y - prm[1], prm[4] - y))
+        m = min(m, min(z - prm[2], prm[5] - z))
+        return max(0.0, m)
+    return 0.0
