@@ -31,8 +31,9 @@ MATERIALS: dict[str, tuple[tuple[float, float, float], tuple[float, float, float
 }
 
 SPHERE_DRIVERS = ("serial", "modbus-tcp", "modbus-rtu")
-TRIGGER_DRIVERS = ("esper",)
-CAMERA_DRIVERS = ("folder",)
+TRIGGER_DRIVERS = ("esper", "hid", "serial-release")
+CAMERA_DRIVERS = ("folder", "gphoto2")
+GPHOTO2_CAPTURE_MODES = ("external", "capture")
 STATION_DRIVERS = ("geocom",)
 Vec3 = tuple[float, float, float]
 
@@ -52,12 +53,31 @@ class SphereConfig:
     watchdog_s: float
     settle_s: float
     pattern_peak: float
+    # first-order thermal model and LED forward voltage, for the plan's energy and thermal budget (`rig plan`)
+    led_forward_voltage_v: float = 3.0
+    ambient_c: float = 25.0
+    thermal_c_per_a: float = 2.5
+    thermal_tau_s: float = 30.0
+    over_temperature_c: float = 70.0
 
 
 @dataclass(frozen=True)
 class TriggerConfig:
-    driver: str
-    url: str
+    """[trigger] (docs/protocols/trigger-boxes.md). ``url = "sim"`` runs the driver against its simulator:
+    esper on a pty, hid with the fake box at the ``HidTransport`` seam, serial-release on pyserial ``loop://``."""
+
+    driver: str                   # "esper" | "hid" | "serial-release"
+    url: str = ""                 # esper, serial-release: device path, socket://host:port, loop:// or "sim";
+    #                               hid: "" (find the box by vendor_id/product_id or path) or "sim"
+    timeout_s: float = 1.0        # esper, hid: how long to wait for the box's answer
+    min_exposure_s: float = 0.001
+    max_exposure_s: float = 60.0
+    outputs_mask: int = 0x3F      # esper, hid: enabled outputs, bit i = output i+1 (0x3f = all six)
+    vendor_id: int = 0            # hid: USB vendor id
+    product_id: int = 0           # hid: USB product id
+    serial: str = ""              # hid: USB serial number string, to choose among identical boxes
+    path: str = ""                # hid: hidapi device path (e.g. "/dev/hidraw3"); overrides the ids
+    focus_lead_s: float = 0.1     # serial-release: RTS (focus) asserted this long before DTR (shutter)
 
 
 @dataclass(frozen=True)
@@ -78,6 +98,12 @@ class CameraConfig:
     read_noise_dn: float
     electrons_per_dn: float
     fetch_timeout_s: float
+    # frame files: driver "folder" watches ``folder`` for them, driver "gphoto2" downloads into ``folder``
+    pattern: str = "*.dng"        # glob of frame file names, case-insensitive
+    port: str = ""                # gphoto2: "usb:001,004", "ptpip:HOST", "disk:/path"; "" = first camera found
+    model: str = ""               # gphoto2: camlib model name; "" = the autodetected one
+    capture_mode: str = "external"   # gphoto2: "external" (trigger box fires it) | "capture" (gphoto2 does)
+    delete_after_download: bool = False   # gphoto2: remove each frame from the camera's card
 
 
 @dataclass(frozen=True)
@@ -97,10 +123,12 @@ class Target:
 
 @dataclass(frozen=True)
 class ObjectConfig:
-    shape: str
+    shape: str                     # "sphere" (radius_mm, placed by surveying survey_target) or "mesh"
     radius_mm: float
-    survey_target: str
+    survey_target: str             # "" for a mesh: its vertices are already in the rig frame, no survey
     target_offset_mm: Vec3
+    mesh_path: str = ""
+    mesh_units_mm: float = 1.0     # millimetres per mesh unit
 
 
 @dataclass(frozen=True)
@@ -122,6 +150,7 @@ class EstimationConfig:
     single_image_method: str
     single_image_subdivisions: int
     eta: float
+    complements: bool = False      # gradients as x, y, z + complements instead of full + x, y, z
 
 
 @dataclass(frozen=True)
@@ -190,6 +219,12 @@ class _Reader:
             raise ConfigError(self.file, self._name(key), f"a number <= {hi}", v)
         return v
 
+    def bool(self, key: str, default: Any = None) -> bool:
+        v = self._get(key, _REQUIRED if default is None else default)
+        if not isinstance(v, bool):
+            raise ConfigError(self.file, self._name(key), "true or false", v)
+        return v
+
     def int(self, key: str, default: Any = None, *, lo: int | None = None, hi: int | None = None) -> int:
         v = self._get(key, _REQUIRED if default is None else default)
         if isinstance(v, bool) or not isinstance(v, int):
@@ -214,6 +249,74 @@ class _Reader:
 
 _REQUIRED = object()
 
+# [trigger] keys each driver reads; a key of another driver (or a typo) is an error, not silently ignored
+_TRIGGER_COMMON = ("driver", "url", "timeout_s", "min_exposure_s", "max_exposure_s")
+TRIGGER_KEYS: dict[str, tuple[str, ...]] = {
+    "esper": _TRIGGER_COMMON + ("outputs_mask",),
+    "hid": _TRIGGER_COMMON + ("outputs_mask", "vendor_id", "product_id", "serial", "path"),
+    "serial-release": ("driver", "url", "min_exposure_s", "max_exposure_s", "focus_lead_s"),
+}
+_GPHOTO2_ONLY = ("port", "model", "capture_mode", "delete_after_download")
+
+
+def _parse_trigger(t: _Reader) -> TriggerConfig:
+    """[trigger]: the driver's own keys, validated; see :class:`TriggerConfig`."""
+    driver = t.str("driver", choices=TRIGGER_DRIVERS)
+    allowed = TRIGGER_KEYS[driver]
+    for key in t.data:
+        if key not in allowed:
+            raise ConfigError(t.file, t._name(key), f"a key of [trigger] for driver {driver!r} ("
+                              + ", ".join(allowed) + ")", key)
+    min_s = t.num("min_exposure_s", 0.001, positive=True, hi=3600.0)
+    max_s = t.num("max_exposure_s", 60.0, positive=True, hi=3600.0)
+    if max_s < min_s:
+        raise ConfigError(t.file, t._name("max_exposure_s"), f"a number >= {t.prefix}min_exposure_s ({min_s:g})",
+                          max_s)
+    common: dict[str, Any] = {"driver": driver, "min_exposure_s": min_s, "max_exposure_s": max_s}
+    if driver == "serial-release":
+        return TriggerConfig(url=t.str("url"), focus_lead_s=t.num("focus_lead_s", 0.1, lo=0.0, hi=10.0),
+                             **common)
+    common["timeout_s"] = t.num("timeout_s", 1.0, positive=True, hi=60.0)
+    common["outputs_mask"] = t.int("outputs_mask", 0x3F, lo=1, hi=0x3F)
+    if driver == "esper":
+        return TriggerConfig(url=t.str("url"), **common)
+    url = t.str("url", "")
+    if url not in ("", "sim"):
+        raise ConfigError(t.file, t._name("url"), '"sim" or no url (a HID box is found by vendor_id and '
+                          "product_id, or by path)", url)
+    path = t.str("path", "")
+    vendor_id = t.int("vendor_id", 0, lo=0, hi=0xFFFF)
+    product_id = t.int("product_id", 0, lo=0, hi=0xFFFF)
+    if url != "sim" and not path:
+        for key, value in (("vendor_id", vendor_id), ("product_id", product_id)):
+            if not value:
+                raise ConfigError(t.file, t._name(key), f"the box's USB {key.replace('_', ' ')}, 1..0xffff "
+                                  f"(or {t.prefix}path, or url = \"sim\")", t.data.get(key))
+    return TriggerConfig(url=url, vendor_id=vendor_id, product_id=product_id, serial=t.str("serial", ""),
+                         path=path, **common)
+
+
+def _camera_driver_fields(c: _Reader) -> dict[str, Any]:
+    """[camera] keys that depend on the driver (the rest of [camera] describes the simulated sensor)."""
+    driver = c.str("driver", choices=CAMERA_DRIVERS)
+    if driver == "folder":
+        for key in _GPHOTO2_ONLY:
+            if key in c.data:
+                raise ConfigError(c.file, c._name(key), 'no such key with driver "folder" (it is used by '
+                                  'driver "gphoto2")', c.data[key])
+        return {"pattern": c.str("pattern", "*.dng")}
+    if c.str("folder") == "sim":
+        raise ConfigError(c.file, c._name("folder"), 'the folder gphoto2 downloads frames into ("sim" needs '
+                          'driver "folder")', "sim")
+    port = c.str("port", "")
+    if port == "sim":
+        raise ConfigError(c.file, c._name("port"), 'a gphoto2 port ("usb:BUS,DEV", "ptpip:HOST", '
+                          '"disk:/path") or "" for the first camera found; there is no simulated gphoto2 camera',
+                          port)
+    return {"pattern": c.str("pattern", "*"), "port": port, "model": c.str("model", ""),
+            "capture_mode": c.str("capture_mode", "external", choices=GPHOTO2_CAPTURE_MODES),
+            "delete_after_download": c.bool("delete_after_download", False)}
+
 
 def parse_config(data: dict[str, Any], file: str = "<memory>") -> RigConfig:
     """Validate a parsed TOML document; raise :class:`ConfigError` naming the first bad field."""
@@ -230,9 +333,13 @@ def parse_config(data: dict[str, Any], file: str = "<memory>") -> RigConfig:
         max_mean_duty=s.num("max_mean_duty", lo=0.0, hi=1.0, positive=True),
         slots=s.int("slots", 16, lo=1, hi=255), watchdog_s=s.num("watchdog_s", 5.0, lo=0.0, hi=60.0),
         settle_s=s.num("settle_s", 0.0, lo=0.0, hi=10.0),
-        pattern_peak=s.num("pattern_peak", 1.0, lo=0.0, hi=1.0, positive=True))
-    t = top.section("trigger")
-    trigger = TriggerConfig(driver=t.str("driver", choices=TRIGGER_DRIVERS), url=t.str("url"))
+        pattern_peak=s.num("pattern_peak", 1.0, lo=0.0, hi=1.0, positive=True),
+        led_forward_voltage_v=s.num("led_forward_voltage_v", 3.0, positive=True),
+        ambient_c=s.num("ambient_c", 25.0, lo=-40.0, hi=80.0),
+        thermal_c_per_a=s.num("thermal_c_per_a", 2.5, lo=0.0),
+        thermal_tau_s=s.num("thermal_tau_s", 30.0, positive=True),
+        over_temperature_c=s.num("over_temperature_c", 70.0, lo=0.0, hi=200.0))
+    trigger = _parse_trigger(top.section("trigger"))
     c = top.section("camera")
     camera = CameraConfig(
         driver=c.str("driver", choices=CAMERA_DRIVERS), folder=c.str("folder"),
@@ -246,7 +353,7 @@ def parse_config(data: dict[str, Any], file: str = "<memory>") -> RigConfig:
         white_level_dn=c.int("white_level_dn", lo=1, hi=65535),
         read_noise_dn=c.num("read_noise_dn", 0.0, lo=0.0),
         electrons_per_dn=c.num("electrons_per_dn", 1.0, positive=True),
-        fetch_timeout_s=c.num("fetch_timeout_s", 30.0, positive=True))
+        fetch_timeout_s=c.num("fetch_timeout_s", 30.0, positive=True), **_camera_driver_fields(c))
     if camera.white_level_dn <= camera.black_level_dn:
         raise ConfigError(file, "camera.white_level_dn", "a value above camera.black_level_dn",
                           camera.white_level_dn)
@@ -268,10 +375,18 @@ def parse_config(data: dict[str, Any], file: str = "<memory>") -> RigConfig:
     if len(set(names)) != len(names):
         raise ConfigError(file, "targets", "unique target names", names)
     ob = top.section("object")
-    obj = ObjectConfig(shape=ob.str("shape", choices=("sphere",)), radius_mm=ob.num("radius_mm", positive=True),
-                       survey_target=ob.str("survey_target"),
-                       target_offset_mm=ob.vec3("target_offset_mm", (0.0, 0.0, 0.0)))
-    if obj.survey_target not in names:
+    shape = ob.str("shape", choices=("sphere", "mesh"))
+    if shape == "mesh":     # a mesh in rig coordinates (e.g. a registered scan): nothing to survey
+        obj = ObjectConfig(shape=shape, radius_mm=ob.num("radius_mm", 0.0, lo=0.0),
+                           survey_target=ob.str("survey_target", ""),
+                           target_offset_mm=ob.vec3("target_offset_mm", (0.0, 0.0, 0.0)),
+                           mesh_path=ob.str("mesh_path"),
+                           mesh_units_mm=ob.num("mesh_units_mm", 1.0, positive=True))
+    else:
+        obj = ObjectConfig(shape=shape, radius_mm=ob.num("radius_mm", positive=True),
+                           survey_target=ob.str("survey_target"),
+                           target_offset_mm=ob.vec3("target_offset_mm", (0.0, 0.0, 0.0)))
+    if obj.survey_target and obj.survey_target not in names:
         raise ConfigError(file, "object.survey_target", "the name of a [[targets]] entry ("
                           + ", ".join(names) + ")", obj.survey_target)
     sc = top.section("scene")
@@ -291,7 +406,8 @@ def parse_config(data: dict[str, Any], file: str = "<memory>") -> RigConfig:
         key_light_direction=e.vec3("key_light_direction"),
         single_image_method=e.str("single_image_method", "direct"),
         single_image_subdivisions=e.int("single_image_subdivisions", 3, lo=1, hi=6),
-        eta=e.num("eta", 1.3, lo=1.0, hi=3.0))
+        eta=e.num("eta", 1.3, lo=1.0, hi=3.0),
+        complements=e.bool("complements", False))
     name = top.section("rig").str("name")
     return RigConfig(name, sphere, trigger, camera, station, tuple(targets), obj, scene, estimation, file)
 
