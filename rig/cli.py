@@ -18,6 +18,15 @@ def _add_config(p: argparse.ArgumentParser) -> None:
                    help="rig config TOML (default: the packaged simulated rig)")
 
 
+def _add_request(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--estimate", nargs="+", default=["gradients", "single-image"],
+                   choices=["gradients", "single-image", "specular"],
+                   help="what to estimate: gradients (diffusion maps), single-image, specular (normals)")
+    p.add_argument("--channels", default="RGB", help="colour channels to capture and process (e.g. RGB, G)")
+    p.add_argument("--complements", action=argparse.BooleanOptionalAction, default=None,
+                   help="gradients as x, y, z + complements (default: [estimation] complements)")
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from .demo import format_table, run_demo
     result = run_demo(config_path=args.config, sessions_dir=args.sessions, name=args.name,
@@ -75,18 +84,141 @@ def _cmd_sim(args: argparse.Namespace) -> int:
     return 0
 
 
+def _request(args: argparse.Namespace):
+    from .plan import CaptureRequest
+    try:
+        return CaptureRequest(tuple(args.estimate), tuple(args.channels.upper()), args.complements)
+    except ValueError as exc:
+        raise SystemExit(f"rig {args.command}: error: {exc}") from None
+
+
 def _cmd_plan(args: argparse.Namespace) -> int:
     from .geometry import rig_geometry
-    from .plan import build_plan, summarize
+    from .plan import budget, build_plan, devices_used, omissions, summarize
     cfg = load_config(args.config)
     geo = rig_geometry(cfg)
-    steps = build_plan(cfg, geo.led_directions, estimate=tuple(args.estimate),
-                       complements=args.complements)
+    req = _request(args)
+    steps = build_plan(cfg, geo.led_directions, request=req)
     if args.json:
-        print(json.dumps([s.to_dict() for s in steps], indent=2))
+        print(json.dumps({"config": cfg.source, "request": req.resolved(cfg).to_dict(),
+                          "steps": [s.to_dict() for s in steps], "budget": budget(steps, cfg),
+                          "devices": devices_used(steps, cfg), "left_out": omissions(cfg, req)}, indent=2))
     else:
-        print(summarize(steps))
+        print(summarize(steps, cfg, req))
     return 0
+
+
+def _json_out(obj) -> None:
+    from .session import _json_default
+    print(json.dumps(obj, indent=2, default=_json_default))
+
+
+def _say(args: argparse.Namespace):
+    return lambda m: print(m, file=sys.stderr, flush=True)
+
+
+def _progress_factory(args: argparse.Namespace):
+    if args.json or args.no_progress:
+        return None
+    from .runner import ProgressBar
+    return lambda steps: ProgressBar(steps, sys.stderr)
+
+
+def _control(args: argparse.Namespace):
+    """Ctrl-C pauses at the next checkpoint (a second aborts). On a terminal a pause waits for Enter; otherwise
+    the run ends as paused, to be continued with `rig resume`."""
+    import threading
+
+    from .runner import RunControl
+    interactive = sys.stdin is not None and sys.stdin.isatty() and not args.json
+    control = RunControl(pause_mode="wait" if interactive else "stop")
+    control.notify = lambda m: print(f"\n{m}", file=sys.stderr, flush=True)
+    if interactive:
+        def read_enter() -> None:
+            for _ in sys.stdin:
+                if control.state == "paused":
+                    control.resume()
+        threading.Thread(target=read_enter, name="rig-resume-on-enter", daemon=True).start()
+    return control
+
+
+def _finish_run(args: argparse.Namespace, outcome) -> int:
+    """Print the outcome; exit 0 complete, 3 paused (resumable)."""
+    if args.json:
+        _json_out(outcome.to_dict())
+    else:
+        r = outcome.result
+        n = len(outcome.session.frames())
+        planned = sum(1 for s in outcome.steps if s.kind == "fetch")
+        print(f"{r.status}: {n}/{planned} frames in {outcome.session.root} ({r.steps_run} steps run, "
+              f"{r.steps_skipped} skipped, {r.retries} retries, {r.holds} holds, {r.reconnects} reconnects)")
+        for note in outcome.notes:
+            print(f"note: {note}")
+        if r.status == "paused":
+            print(f"continue with: rig resume {outcome.session.root}")
+    return 0 if outcome.result.status == "complete" else 3
+
+
+def _run_guarded(args: argparse.Namespace, fn) -> int:
+    from .runner import Aborted, signal_handlers
+    control = _control(args)
+    try:
+        with signal_handlers(control):
+            outcome = fn(control)
+    except Aborted as exc:
+        print(f"rig {args.command}: aborted ({exc.reason}); the sphere was switched off; continue with "
+              "`rig resume SESSION`", file=sys.stderr)
+        if args.json:
+            _json_out({"status": "aborted", "reason": exc.reason})
+        return 128 + (exc.signum or signal.SIGINT)
+    return _finish_run(args, outcome)
+
+
+def _cmd_capture(args: argparse.Namespace) -> int:
+    from .capture import capture, simulated
+    cfg = load_config(args.config)
+    if args.sim:
+        cfg = simulated(cfg)
+    req = _request(args)
+    return _run_guarded(args, lambda control: capture(
+        cfg, req, sessions_dir=args.sessions, name=args.name, control=control,
+        progress_factory=_progress_factory(args), say=None if args.json else _say(args)))
+
+
+def _cmd_resume(args: argparse.Namespace) -> int:
+    from .capture import resume
+    return _run_guarded(args, lambda control: resume(
+        args.session, simulate=args.sim, control=control, progress_factory=_progress_factory(args),
+        say=None if args.json else _say(args)))
+
+
+def _cmd_report(args: argparse.Namespace) -> int:
+    from .report import write_report
+    out = write_report(args.session, out_dir=args.out, fmt=args.format, run_estimators=not args.no_estimate,
+                       log=None if args.json else _say(args))
+    if args.json:
+        _json_out(out)
+    else:
+        print(out["index"])
+    return 0
+
+
+def _cmd_devices(args: argparse.Namespace) -> int:
+    from .capture import device_report, simulated
+    cfg = load_config(args.config)
+    if args.sim:
+        cfg = simulated(cfg)
+    rows = device_report(cfg)
+    if args.json:
+        _json_out({"config": cfg.source, "devices": rows, "ok": all(r["ok"] for r in rows)})
+    else:
+        for r in rows:
+            ident = r.get("identity") or {}
+            who = f"{ident.get('model', '?')} fw {ident.get('firmware', '?')} #{ident.get('serial_number', '')}"
+            health = r.get("health") or {}
+            detail = r.get("error") or ", ".join(f"{k}={v}" for k, v in health.items() if k != "ok")
+            print(f"{r['role']:<14} {'ok  ' if r['ok'] else 'FAIL'} {r['url']:<24} {who:<36} {detail}")
+    return 0 if all(r["ok"] for r in rows) else 1
 
 
 def _cmd_estimate(args: argparse.Namespace) -> int:
@@ -136,14 +268,43 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--url", default=None, help="with --device: 'pty' (default) or tcp://HOST:PORT")
     p.set_defaults(func=_cmd_sim)
 
-    p = sub.add_parser("plan", help="print a capture plan (dry run, no devices)")
+    p = sub.add_parser("plan", help="print a capture plan with its budget (dry run, no devices)")
     _add_config(p)
-    p.add_argument("--estimate", nargs="+", default=["gradients", "single-image"],
-                   choices=["gradients", "single-image"], help="what to estimate")
-    p.add_argument("--complements", action="store_true", help="use complement gradients, no full-on")
+    _add_request(p)
     p.add_argument("--dry-run", action="store_true", help="accepted for clarity; plan never captures")
-    p.add_argument("--json", action="store_true", help="print the plan as JSON")
+    p.add_argument("--json", action="store_true", help="print the plan, budget and devices as JSON")
     p.set_defaults(func=_cmd_plan)
+
+    p = sub.add_parser("capture", help="capture a session: config -> devices -> plan -> session folder")
+    _add_config(p)
+    _add_request(p)
+    p.add_argument("--sim", action="store_true", help="simulate every device (else only those with url 'sim')")
+    p.add_argument("--sessions", type=Path, default=Path("sessions"), help="folder for session folders")
+    p.add_argument("--name", default=None, help="session name (default: capture-<timestamp>)")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--json", action="store_true", help="print the outcome as JSON")
+    p.set_defaults(func=_cmd_capture)
+
+    p = sub.add_parser("resume", help="continue an interrupted or paused session")
+    p.add_argument("session", type=Path, help="session folder")
+    p.add_argument("--sim", action="store_true", help="simulate every device")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--json", action="store_true", help="print the outcome as JSON")
+    p.set_defaults(func=_cmd_resume)
+
+    p = sub.add_parser("report", help="write a session report (HTML or Markdown with PNGs)")
+    p.add_argument("session", type=Path, help="session folder")
+    p.add_argument("--format", choices=["html", "md"], default="html", help="report format")
+    p.add_argument("--out", type=Path, default=None, help="output folder (default: SESSION/report)")
+    p.add_argument("--no-estimate", action="store_true", help="do not run the estimators if none ran yet")
+    p.add_argument("--json", action="store_true", help="print the report's summary as JSON")
+    p.set_defaults(func=_cmd_report)
+
+    p = sub.add_parser("devices", help="identify each device and report its health")
+    _add_config(p)
+    p.add_argument("--sim", action="store_true", help="simulate every device")
+    p.add_argument("--json", action="store_true", help="print the result as JSON")
+    p.set_defaults(func=_cmd_devices)
 
     p = sub.add_parser("estimate", help="estimate scattering parameters from a session, a scene file or a "
                                         "capture folder")

@@ -16,7 +16,7 @@ from .config import load_config
 from .estimate import estimate_session
 from .factory import open_devices, start_simulators
 from .geometry import geometry_to_dict, rig_geometry
-from .plan import build_plan
+from .plan import CaptureRequest, build_plan
 from .runner import run_plan
 from .session import Session
 
@@ -49,15 +49,18 @@ def run_demo(*, config_path: str | Path | None = None, sessions_dir: str | Path 
                     ident = dataclasses.asdict(dev.identify())
                     ident["url"] = sim.urls.get(role, "")
                     identities[role] = ident
-                steps = build_plan(cfg, geo.led_directions)
+                request = CaptureRequest()
+                steps = build_plan(cfg, geo.led_directions, request=request)
                 session = Session.create(sessions_dir, name, config=cfg.to_dict(), devices=identities,
                                          plan=[s.to_dict() for s in steps],
-                                         geometry=geometry_to_dict(geo), truth=sim.truth)
+                                         geometry=geometry_to_dict(geo), truth=sim.truth,
+                                         request=request.resolved(cfg).to_dict())
                 say(f"session {session.root}")
-                n_frames = sum(1 for s in steps if s.kind == "capture")
+                n_frames = sum(1 for s in steps if s.kind == "fetch")
                 timed(f"capture ({n_frames} frames)", run_plan, steps, devices, session,
                       led_directions=geo.led_directions, pattern_peak=cfg.sphere.pattern_peak,
-                      settle_s=cfg.sphere.settle_s, fetch_timeout_s=cfg.camera.fetch_timeout_s,
+                      fetch_timeout_s=cfg.camera.fetch_timeout_s, watchdog_s=cfg.sphere.watchdog_s or None,
+                      reopen=lambda: open_devices(cfg, geo, sim),
                       progress=lambda i, n, s: say(f"  step {i + 1}/{n}: {s.kind} "
                                                    f"{s.params.get('pattern', s.params.get('target', ''))}"))
             finally:

@@ -3,14 +3,20 @@
 - ``manifest.json``: format version, name, creation time, software version, config snapshot, device
   identities, the plan, and (simulated sessions only) the scene's ground truth. Written atomically once.
 - ``events.jsonl``: append-only journal, one JSON object per line, fsynced per event: ``start``, ``frame``,
-  ``survey``, ``stop``. A line cut short by a crash is ignored on read (and reported).
+  ``survey``, ``stop`` and the runner's ``retry``, ``hold``, ``release``, ``lost``, ``reconnected``, ``pause``,
+  ``resume``, ``restart``, ``recovered``. A line cut short by a crash is ignored on read.
+- one writer at a time: :meth:`Session.lock` holds an exclusive ``flock`` on ``.lock`` (released by the
+  kernel even after ``kill -9``); :meth:`Session.recover` moves frames a crash left unjournalled to
+  ``frames/orphans/`` (never deleted) so that a resumed run re-captures those steps.
 - ``frames/``: RAW frames (DNG), each written atomically (temporary file, fsync, rename) and never
   overwritten; the journal records each frame's pattern, polarization, exposure, timestamps and SHA-256.
 - ``estimates/``: one JSON file per estimator run.
 """
 from __future__ import annotations
 
+import contextlib
 import datetime as _dt
+import fcntl
 import hashlib
 import json
 import os
@@ -22,11 +28,16 @@ from typing import Any, Iterator
 from drivers.errors import RigError
 
 FORMAT_VERSION = 1
+STOP_STATUSES = ("complete", "paused", "aborted")
 _NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]{0,63}$")
 
 
 class SessionError(RigError, ValueError):
     """A session folder is missing, malformed, or would be clobbered."""
+
+
+class SessionBusy(SessionError):
+    """Another process holds the session's lock (a capture or resume is running on it)."""
 
 
 def software_version() -> str:
@@ -107,7 +118,8 @@ class Session:
     def create(cls, parent: str | Path, name: str, *, config: dict[str, Any],
                devices: dict[str, Any], plan: list[dict[str, Any]],
                geometry: dict[str, Any] | None = None,
-               truth: dict[str, Any] | None = None) -> "Session":
+               truth: dict[str, Any] | None = None,
+               request: dict[str, Any] | None = None) -> "Session":
         validate_session_name(name)
         parent = Path(parent)
         parent.mkdir(parents=True, exist_ok=True)
@@ -121,8 +133,8 @@ class Session:
         (root / "estimates").mkdir()
         manifest = {"format": "sssrig-session", "format_version": FORMAT_VERSION, "name": name,
                     "created": now_iso(), "software_version": software_version(),
-                    "config": config, "devices": devices, "plan": plan, "geometry": geometry,
-                    "truth": truth}
+                    "config": config, "devices": devices, "request": request, "plan": plan,
+                    "geometry": geometry, "truth": truth}
         atomic_write_bytes(root / "manifest.json",
                            json.dumps(manifest, indent=2, default=_json_default).encode())
         s = cls(root)
@@ -142,7 +154,12 @@ class Session:
 
     def add_frame(self, step: int, source: Path, *, pattern: str, polarization: str,
                   exposure_s: float, t_trigger: str) -> FrameRecord:
+        """Copy ``source`` into ``frames/`` atomically, then journal it. A journalled frame is never
+        overwritten (:class:`SessionError`); an unjournalled file in the way (a crash between the copy and the
+        journal line) is moved to ``frames/orphans/`` first."""
         rel = f"frames/{step:04d}_{pattern}_{polarization}{Path(source).suffix.lower() or '.dng'}"
+        if (self.root / rel).exists() and rel not in {f.file for f in self.frames()}:
+            self.recover()
         digest = atomic_copy(Path(source), self.root / rel)
         rec = FrameRecord(step, pattern, polarization, float(exposure_s), rel, digest, t_trigger,
                           now_iso())
@@ -162,7 +179,48 @@ class Session:
         return path
 
     def stop(self, status: str, reason: str | None = None) -> None:
+        if status not in STOP_STATUSES:
+            raise ValueError(f"stop status {status!r}: expected one of {', '.join(STOP_STATUSES)}")
         self.append_event({"type": "stop", "status": status, "reason": reason})
+
+    @contextlib.contextmanager
+    def lock(self) -> Iterator["Session"]:
+        """Hold the session's writer lock; :class:`SessionBusy` if another process holds it."""
+        fd = os.open(self.root / ".lock", os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise SessionBusy(f"{self.root}: another process is writing this session "
+                                  "(a capture or resume is running)") from None
+            yield self
+        finally:
+            os.close(fd)    # releases the lock
+
+    def recover(self) -> list[str]:
+        """Move files in ``frames/`` that the journal does not reference (a frame copied just before a
+        crash, a temporary file of an interrupted copy) to ``frames/orphans/``; journal a ``recovered``
+        event. Nothing is deleted. Returns the moved names."""
+        frames_dir = self.root / "frames"
+        journalled = {Path(f.file).name for f in self.frames()}
+        stray = sorted(p for p in frames_dir.iterdir() if p.is_file() and p.name not in journalled)
+        if not stray:
+            return []
+        orphans = frames_dir / "orphans"
+        orphans.mkdir(exist_ok=True)
+        moved = []
+        for p in stray:
+            dst = orphans / p.name.lstrip(".")
+            n = 1
+            while dst.exists():
+                dst = orphans / f"{p.name.lstrip('.')}.{n}"
+                n += 1
+            os.rename(p, dst)
+            moved.append(f"{p.name} -> {dst.relative_to(self.root)}")
+        _fsync_dir(orphans)
+        _fsync_dir(frames_dir)
+        self.append_event({"type": "recovered", "moved": moved})
+        return moved
 
     # --- reading -----------------------------------------------------------------------------
     @classmethod
@@ -216,11 +274,23 @@ class Session:
         return {e["target"]: e for e in self.events() if e.get("type") == "survey"}
 
     def completed_steps(self) -> set[int]:
+        """Plan steps whose ``frame`` or ``survey`` event is in the journal (done; a resume skips them)."""
         done = set()
         for e in self.events():
-            if e.get("type") in ("frame", "survey", "step") and "step" in e:
+            if e.get("type") in ("frame", "survey") and "step" in e:
                 done.add(int(e["step"]))
         return done
+
+    def status(self) -> str:
+        """``complete``, ``paused`` or ``aborted`` (the last ``stop`` event after the last (re)start), or
+        ``interrupted`` (started, no stop: killed or crashed)."""
+        status = "interrupted"
+        for e in self.events():
+            if e.get("type") in ("start", "restart"):
+                status = "interrupted"
+            elif e.get("type") == "stop":
+                status = e.get("status", "interrupted")
+        return status
 
     def verify(self) -> list[str]:
         """Check every journalled frame exists with its recorded SHA-256; return the problems found."""

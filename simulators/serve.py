@@ -31,7 +31,9 @@ class Faults:
 
     latency_s: delay before each reply; split_at: write replies in chunks of this many bytes with
     ``split_gap_s`` between them; drop_probability / corrupt_probability: per reply byte;
-    mute: swallow every reply (a device that stopped answering); garbage: bytes sent before the next reply.
+    mute: swallow every reply (a device that stopped answering); garbage: bytes sent before the next reply;
+    unplugged: the cable is pulled: bytes from the host never reach the device and nothing comes back (unlike
+    ``mute``, the device executes nothing); clear it to plug the cable back in.
     """
 
     latency_s: float = 0.0
@@ -41,6 +43,7 @@ class Faults:
     corrupt_probability: float = 0.0
     mute: bool = False
     garbage: bytes = b""
+    unplugged: bool = False
     seed: int = 0
     _rng: random.Random = field(default_factory=random.Random, repr=False)
 
@@ -53,6 +56,7 @@ class Faults:
         self.drop_probability = self.corrupt_probability = 0.0
         self.mute = False
         self.garbage = b""
+        self.unplugged = False
 
     def apply(self, reply: bytes) -> list[bytes]:
         """Return the chunks to write for ``reply`` after the byte-level faults."""
@@ -83,6 +87,8 @@ class _Server:
         self._thread: threading.Thread | None = None
 
     def _reply(self, data: bytes, write) -> None:
+        if self.faults.unplugged:       # lost on the wire: the device never sees these bytes
+            return
         with self._lock:
             reply = self.device.receive(data)
         chunks = self.faults.apply(reply)

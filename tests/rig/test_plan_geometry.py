@@ -1,11 +1,9 @@
-"""Plans leave out what a request does not need; the LED layout and patterns are what they claim."""
+"""The LED layout and the patterns are what they claim (plan tables: test_plan_tables.py)."""
 import numpy as np
 import pytest
 
-from rig.config import load_config
 from rig.geometry import geodesic_directions, led_layout
 from rig.patterns import pattern_rgb16, pattern_values
-from rig.plan import build_plan, summarize
 
 
 @pytest.mark.parametrize("f", [1, 2, 5, 6])
@@ -32,24 +30,3 @@ def test_gradient_patterns_sum_to_full_and_complements():
     assert q.dtype == np.uint16 and q.shape == (len(d), 3) and q.max() <= round(0.8 * 65535)
     with pytest.raises(ValueError, match="unknown pattern"):
         pattern_values("w", d)
-
-
-def test_plan_tables():
-    cfg = load_config()
-    _, d = led_layout(cfg.sphere.geodesic_frequency, 1000.0, cfg.sphere.min_elevation_deg)
-    both = build_plan(cfg, d)
-    caps = [(s.params["pattern"], s.params["polarization"]) for s in both if s.kind == "capture"]
-    assert caps == [("ambient", "cross"), ("full", "cross"), ("x", "cross"), ("y", "cross"),
-                    ("z", "cross"), ("key", "cross")]
-    assert [s.params["target"] for s in both if s.kind == "survey"] == ["object_top", "key_led"]
-    grad_only = build_plan(cfg, d, estimate=("gradients",))
-    # no survey of the key light without single-image; the object is still surveyed
-    assert [s.params["target"] for s in grad_only if s.kind == "survey"] == ["object_top"]
-    assert "key" not in [s.params.get("pattern") for s in grad_only]
-    comp = build_plan(cfg, d, estimate=("gradients",), complements=True)
-    assert [s.params["pattern"] for s in comp if s.kind == "capture"] == [
-        "ambient", "x", "y", "z", "x_c", "y_c", "z_c"]
-    assert all(s.reason for s in both)
-    assert "6 frames" in summarize(both)
-    with pytest.raises(ValueError, match="unknown estimator"):
-        build_plan(cfg, d, estimate=("tarot",))

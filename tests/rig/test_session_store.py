@@ -75,3 +75,51 @@ def test_atomic_write_leaves_no_temporary_files(tmp_path):
     atomic_write_bytes(tmp_path / "a.bin", b"2", overwrite=True)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.bin"]
     assert (tmp_path / "a.bin").read_bytes() == b"2"
+
+
+def test_manifest_records_software_version_and_request(tmp_path):
+    from importlib.metadata import version
+    s = Session.create(tmp_path, "v", config={}, devices={}, plan=[], request={"estimate": ["gradients"]})
+    m = s.manifest
+    assert m["software_version"] == version("sssrig") and m["request"] == {"estimate": ["gradients"]}
+
+
+def test_recover_moves_unjournalled_frames_aside_and_never_deletes(tmp_path):
+    s = _new(tmp_path)
+    src = tmp_path / "drop.dng"
+    src.write_bytes(b"journalled")
+    kept = s.add_frame(2, src, pattern="full", polarization="cross", exposure_s=0.02, t_trigger="t")
+    # a crash between the atomic copy and the journal line, and one in the middle of a copy
+    (s.root / "frames" / "0005_x_cross.dng").write_bytes(b"copied, not journalled")
+    (s.root / "frames" / ".0007_y_cross.dng.123.tmp").write_bytes(b"half a fr")
+    moved = s.recover()
+    assert len(moved) == 2
+    orphans = sorted(p.name for p in (s.root / "frames" / "orphans").iterdir())
+    assert orphans == ["0005_x_cross.dng", "0007_y_cross.dng.123.tmp"]
+    assert (s.root / "frames" / "orphans" / "0005_x_cross.dng").read_bytes() == b"copied, not journalled"
+    assert sorted(p.name for p in (s.root / "frames").glob("*.dng")) == [kept.file.split("/")[1]]
+    assert [e["type"] for e in s.events()][-1] == "recovered"
+    assert s.recover() == [] and s.verify() == []
+
+
+def test_retaking_a_frame_whose_copy_was_orphaned(tmp_path):
+    s = _new(tmp_path)
+    (s.root / "frames" / "0004_z_cross.dng").write_bytes(b"from the killed run")
+    src = tmp_path / "drop.dng"
+    src.write_bytes(b"retaken")
+    rec = s.add_frame(4, src, pattern="z", polarization="cross", exposure_s=0.02, t_trigger="t")
+    assert (s.root / rec.file).read_bytes() == b"retaken"
+    assert (s.root / "frames" / "orphans" / "0004_z_cross.dng").read_bytes() == b"from the killed run"
+
+
+def test_status_follows_start_stop_and_restart(tmp_path):
+    s = _new(tmp_path)
+    assert s.status() == "interrupted"
+    s.stop("paused", "SIGINT")
+    assert s.status() == "paused"
+    s.append_event({"type": "restart"})
+    assert s.status() == "interrupted"
+    s.stop("complete")
+    assert s.status() == "complete"
+    with pytest.raises(ValueError, match="stop status"):
+        s.stop("finished")

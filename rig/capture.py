@@ -1,0 +1,268 @@
+"""Capture, resume and device checks: config -> devices (real or simulated) -> plan -> session -> runner.
+
+Used by ``rig capture``, ``rig resume`` and ``rig devices`` (docs/capture-and-resume.md). A device whose URL is
+``sim`` (or every device, with ``simulate=True``) gets its simulator started on a real transport by
+:func:`rig.factory.start_simulators`; the drivers then talk to it over the wire as to hardware.
+"""
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import datetime as _dt
+import os
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterator
+
+import numpy as np
+
+from drivers.errors import DeviceError, LimitError, RigError
+
+from .config import RigConfig, parse_config
+from .factory import SimulatedRig, open_devices, start_simulators
+from .geometry import RigGeometry, geometry_to_dict, rig_geometry
+from .plan import CaptureRequest, Step, budget, build_plan, steps_from_dicts
+from .runner import Devices, RunControl, RunResult, run_plan
+from .session import Session, SessionError, software_version, validate_session_name
+
+ROLES = ("sphere", "trigger", "camera", "total_station")
+
+
+def config_from_snapshot(snapshot: dict[str, Any], file: str) -> RigConfig:
+    """Re-validate a manifest's config snapshot (``RigConfig.to_dict()``); errors name ``file`` and the field."""
+    from . import config as _config
+
+    data = {k: v for k, v in snapshot.items() if k != "name"}
+    data["rig"] = {"name": snapshot.get("name")}
+    # to_dict() writes every field; the parser refuses keys that belong to another driver: keep the driver's own
+    trig = data.get("trigger")
+    keys = getattr(_config, "TRIGGER_KEYS", {})
+    if isinstance(trig, dict) and trig.get("driver") in keys:
+        data["trigger"] = {k: v for k, v in trig.items() if k in keys[trig["driver"]]}
+    cam = data.get("camera")
+    if isinstance(cam, dict) and cam.get("driver") == "folder":
+        data["camera"] = {k: v for k, v in cam.items() if k not in getattr(_config, "_GPHOTO2_ONLY", ())}
+    return parse_config(data, f"{file}: config")
+
+
+def simulated(config: RigConfig) -> RigConfig:
+    """The same rig with every device simulated (``url = "sim"``, camera folder ``"sim"``)."""
+    r = dataclasses.replace
+    return r(config, sphere=r(config.sphere, url="sim"), trigger=r(config.trigger, url="sim"),
+             camera=r(config.camera, driver="folder", folder="sim"),
+             total_station=r(config.total_station, url="sim"))
+
+
+def uses_simulators(config: RigConfig) -> bool:
+    return "sim" in (config.sphere.url, config.trigger.url, config.camera.folder, config.total_station.url)
+
+
+@dataclass
+class Rig:
+    config: RigConfig
+    geometry: RigGeometry
+    devices: Devices
+    sim: SimulatedRig | None
+
+    def url(self, role: str) -> str:
+        if self.sim is not None and role in self.sim.urls:
+            return self.sim.urls[role]
+        c = self.config
+        return {"sphere": c.sphere.url, "trigger": c.trigger.url, "camera": c.camera.folder,
+                "total_station": c.total_station.url}[role]
+
+    def identities(self) -> dict[str, dict[str, Any]]:
+        out = {}
+        for role, dev in zip(ROLES, (self.devices.light, self.devices.trigger, self.devices.camera,
+                                     self.devices.feed)):
+            if dev is None:
+                continue
+            ident = dataclasses.asdict(dev.identify())
+            ident["url"] = self.url(role)
+            out[role] = ident
+        return out
+
+    def reopen(self) -> Devices:
+        return open_devices(self.config, self.geometry, self.sim)
+
+
+@contextlib.contextmanager
+def open_rig(config: RigConfig) -> Iterator[Rig]:
+    """Start the simulators the config asks for, open every device; close all on exit (the sphere's driver
+    switches it off on close)."""
+    geo = rig_geometry(config)
+    with contextlib.ExitStack() as stack:
+        sim = None
+        if uses_simulators(config):
+            work = stack.enter_context(tempfile.TemporaryDirectory(prefix="sssrig-sim-"))
+            sim = start_simulators(config, geo, Path(work))
+            stack.callback(sim.close)
+        devices = open_devices(config, geo, sim)
+        stack.callback(devices.close)
+        yield Rig(config, geo, devices, sim)
+
+
+def default_session_name(prefix: str = "capture") -> str:
+    return f"{prefix}-{_dt.datetime.now().strftime('%Y%m%d-%H%M%S')}"
+
+
+@dataclass
+class Outcome:
+    session: Session
+    result: RunResult
+    steps: list[Step]
+    notes: list[str] = dataclasses.field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        frames = self.session.frames()
+        return {"session": str(self.session.root), **self.result.to_dict(),
+                "frames": len(frames), "frames_planned": sum(1 for s in self.steps if s.kind == "fetch"),
+                "notes": self.notes}
+
+
+def _run(session: Session, steps: list[Step], rig: Rig, led_directions: np.ndarray, *,
+         control: RunControl | None, progress: Callable[..., None] | None, say: Callable[[str], None],
+         run_options: dict[str, Any] | None) -> RunResult:
+    cfg = rig.config
+    opts = {"watchdog_s": cfg.sphere.watchdog_s or None, **(run_options or {})}
+    return run_plan(steps, rig.devices, session, led_directions=led_directions,
+                    pattern_peak=cfg.sphere.pattern_peak, fetch_timeout_s=cfg.camera.fetch_timeout_s,
+                    progress=progress, control=control, reopen=rig.reopen, say=say, **opts)
+
+
+def capture(config: RigConfig, request: CaptureRequest, *, sessions_dir: str | Path, name: str | None = None,
+            control: RunControl | None = None, progress_factory: Callable[[list[Step]], Any] | None = None,
+            say: Callable[[str], None] | None = None, run_options: dict[str, Any] | None = None) -> Outcome:
+    """Plan ``request`` on ``config``'s rig, create the session, run the plan.
+
+    Refuses before touching a device if the name is invalid or taken, or the plan has problems (current over
+    the limit, a watchdog shorter than an exposure...: :func:`rig.plan.budget`)."""
+    say = say or (lambda m: None)
+    name = validate_session_name(name or default_session_name())
+    if (Path(sessions_dir) / name).exists():
+        raise SessionError(f"{Path(sessions_dir) / name}: a session with this name exists; choose another "
+                           "name or `rig resume` it")
+    geo = rig_geometry(config)
+    steps = build_plan(config, geo.led_directions, request=request)
+    problems = budget(steps, config)["problems"]
+    if problems:
+        raise LimitError("the plan cannot run safely: " + "; ".join(problems))
+    with open_rig(config) as rig:
+        ids = rig.identities()
+        truth = rig.sim.truth if rig.sim is not None and "camera" in rig.sim.urls else None
+        session = Session.create(sessions_dir, name, config=config.to_dict(), devices=ids,
+                                 plan=[s.to_dict() for s in steps], geometry=geometry_to_dict(rig.geometry),
+                                 truth=truth, request=request.resolved(config).to_dict())
+        say(f"session {session.root}")
+        progress = progress_factory(steps) if progress_factory else None
+        with session.lock():
+            try:
+                result = _run(session, steps, rig, rig.geometry.led_directions, control=control,
+                              progress=progress, say=say, run_options=run_options)
+            finally:
+                if progress is not None and hasattr(progress, "close"):
+                    progress.close()
+    return Outcome(session, result, steps)
+
+
+def resume(root: str | Path, *, simulate: bool = False, control: RunControl | None = None,
+           progress_factory: Callable[[list[Step]], Any] | None = None, say: Callable[[str], None] | None = None,
+           run_options: dict[str, Any] | None = None) -> Outcome:
+    """Continue a session: only the steps without a journalled frame or survey run (and the setup they need).
+
+    The plan, config and LED geometry come from the session's manifest, so the resumed frames are taken exactly
+    as planned. A session already complete is left alone."""
+    say = say or (lambda m: None)
+    session = Session.open(root)
+    with session.lock():
+        m = session.manifest
+        steps = steps_from_dicts(m["plan"])
+        if session.status() == "complete":
+            return Outcome(session, RunResult(status="complete", reason="already complete", lights_off=True),
+                           steps, ["the session was already complete: nothing to do"])
+        config = config_from_snapshot(m["config"], str(session.root / "manifest.json"))
+        if simulate:
+            config = simulated(config)
+        done = session.completed_steps()
+        missing = [s.index for s in steps if s.kind in ("fetch", "survey") and s.index not in done]
+        notes = []
+        with open_rig(config) as rig:
+            ids = rig.identities()
+            for role, ident in ids.items():
+                old = m.get("devices", {}).get(role)
+                if old and (old.get("model"), old.get("serial_number")) != (ident["model"], ident["serial_number"]):
+                    notes.append(f"{role}: was {old.get('model')} #{old.get('serial_number')}, now "
+                                 f"{ident['model']} #{ident['serial_number']}")
+            session.append_event({"type": "restart", "software_version": software_version(), "devices": ids,
+                                  "missing_steps": missing, "device_changes": notes})
+            say(f"resuming {session.root}: {len(missing)} frame/survey step(s) missing")
+            for n in notes:
+                say(f"note: device changed since the session started: {n}")
+            dirs = np.asarray(m["geometry"]["led_directions"], float) if m.get("geometry") else \
+                rig.geometry.led_directions
+            progress = progress_factory(steps) if progress_factory else None
+            try:
+                result = _run(session, steps, rig, dirs, control=control, progress=progress, say=say,
+                              run_options=run_options)
+            finally:
+                if progress is not None and hasattr(progress, "close"):
+                    progress.close()
+    return Outcome(session, result, steps, notes)
+
+
+# ---------------------------------------------------------------------------------------------- devices
+_FAULT_BITS = {0x01: "over_temperature", 0x02: "watchdog_tripped", 0x04: "led_fault"}
+
+
+def _health(role: str, dev: Any) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    if role == "sphere":
+        st = dev.status()
+        out = {"temperature_c": st.temperature_c, "current_a": st.current_a, "lit": st.lit,
+               "active_slot": st.active_slot, "polarization": st.polarization.name.lower(),
+               "faults": [name for bit, name in _FAULT_BITS.items() if st.fault_flags & bit]}
+        out["ok"] = not (st.fault_flags & 0x05)
+    elif role == "trigger":
+        count = getattr(dev, "shot_count", None)
+        if count is not None:
+            out["shot_count"] = count()
+        out["ok"] = True
+    elif role == "camera":
+        folder = Path(getattr(dev, "folder", ""))
+        out = {"folder": str(folder), "exists": folder.is_dir(),
+               "writable": folder.is_dir() and os.access(folder, os.W_OK)}
+        out["ok"] = out["exists"]
+    else:
+        out["ok"] = True
+    return out
+
+
+def device_report(config: RigConfig) -> list[dict[str, Any]]:
+    """Identify each device and read its health. One row per role: ``ok``, ``identity``, ``health`` or
+    ``error``. A rig that cannot be opened yields rows naming the error (the role whose URL it names)."""
+    rows: list[dict[str, Any]] = []
+    try:
+        with open_rig(config) as rig:
+            for role, dev in zip(ROLES, (rig.devices.light, rig.devices.trigger, rig.devices.camera,
+                                         rig.devices.feed)):
+                row: dict[str, Any] = {"role": role, "url": rig.url(role), "ok": False}
+                t0 = time.perf_counter()
+                try:
+                    row["identity"] = dataclasses.asdict(dev.identify())
+                    row["health"] = _health(role, dev)
+                    row["ok"] = bool(row["health"].get("ok"))
+                except (DeviceError, OSError) as exc:
+                    row["error"] = f"{type(exc).__name__}: {exc}"
+                row["seconds"] = round(time.perf_counter() - t0, 4)
+                rows.append(row)
+    except (RigError, OSError) as exc:
+        msg = f"{type(exc).__name__}: {exc}"
+        urls = {"sphere": config.sphere.url, "trigger": config.trigger.url, "camera": config.camera.folder,
+                "total_station": config.total_station.url}
+        named = [r for r, u in urls.items() if u and u != "sim" and u in str(exc)]
+        for role in ROLES:
+            rows.append({"role": role, "url": urls[role], "ok": False,
+                         "error": msg if (role in named or not named) else "not checked: the rig did not open"})
+    return rows

@@ -1,0 +1,379 @@
+"""The runner on the simulated rig (drivers over real ptys / TCP): resume, retries, interlock, pause/abort,
+a device unplugged mid-sequence, and the sphere dark after every failure path (read from the simulator)."""
+import dataclasses
+import io
+import json
+import os
+import signal
+import threading
+import time
+import tomllib
+
+import pytest
+
+from drivers.camera.folder import FolderCamera
+from drivers.errors import ConnectionLost, DeviceRejected, DeviceTimeout
+from drivers.led_sphere.codec import NackCode
+from rig.config import default_config_text, parse_config
+from rig.factory import open_devices, start_simulators
+from rig.geometry import rig_geometry
+from rig.plan import build_plan
+from rig.runner import Aborted, ProgressBar, RunControl, run_plan, signal_handlers
+from rig.session import Session
+
+SMALL = {"sphere": {"geodesic_frequency": 3, "watchdog_s": 1.5},
+         "trigger": {"timeout_s": 0.3},
+         "camera": {"width_px": 24, "height_px": 24, "fx_px": 400.0, "key_exposure_s": 0.1},
+         "scene": {"tessellation": 2}}
+FAST = dict(retries=1, retry_delay_s=0.05, lost_poll_s=0.1, hold_poll_s=0.05, drain_timeout_s=0.2)
+
+
+def small_config():
+    data = tomllib.loads(default_config_text())
+    for section, fields in SMALL.items():
+        data[section].update(fields)
+    return parse_config(data, "small.toml")
+
+
+def wait_for(cond, timeout_s=60.0, what="condition"):
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if cond():
+            return
+        time.sleep(0.02)
+    raise AssertionError(f"timed out waiting for {what}")
+
+
+@pytest.fixture(scope="module")
+def rig(tmp_path_factory):
+    cfg = small_config()
+    geo = rig_geometry(cfg)
+    sim = start_simulators(cfg, geo, tmp_path_factory.mktemp("sim"))
+    yield cfg, geo, sim
+    sim.close()
+
+
+class Env:
+    def __init__(self, cfg, geo, sim, tmp_path):
+        self.cfg, self.geo, self.sim, self.tmp = cfg, geo, sim, tmp_path
+        self.model = sim.servers["sphere"].device
+        self.devices = open_devices(cfg, geo, sim)
+        self.n = 0
+
+    def session(self, steps):
+        self.n += 1
+        return Session.create(self.tmp, f"s{self.n}", config=self.cfg.to_dict(), devices={},
+                              plan=[s.to_dict() for s in steps])
+
+    def run(self, steps, session, **kw):
+        opts = {**FAST, "watchdog_s": self.cfg.sphere.watchdog_s, **kw}
+        return run_plan(steps, self.devices, session, led_directions=self.geo.led_directions,
+                        pattern_peak=self.cfg.sphere.pattern_peak, fetch_timeout_s=10.0,
+                        reopen=lambda: open_devices(self.cfg, self.geo, self.sim), **opts)
+
+    def dark(self):
+        return not self.model.lit
+
+
+@pytest.fixture
+def env(rig, tmp_path):
+    cfg, geo, sim = rig
+    for srv in sim.servers.values():
+        srv.faults.clear()
+    sim.servers["sphere"].device.reset()
+    e = Env(cfg, geo, sim, tmp_path)
+    yield e
+    for srv in sim.servers.values():
+        srv.faults.clear()
+    e.model.force_over_temperature = False
+    e.devices.close()
+
+
+def plan(env, estimate=("gradients", "single-image")):
+    return build_plan(env.cfg, env.geo.led_directions, estimate=estimate)
+
+
+def at(steps, kind, frame_no):
+    """The step of ``kind`` in the ``frame_no``-th frame (0-based)."""
+    fetches = [s for s in steps if s.kind == "fetch"]
+    return next(s for s in steps if s.kind == kind and s.frame == fetches[frame_no].frame)
+
+
+def events(session, type_=None):
+    return [e for e in session.events() if type_ is None or e["type"] == type_]
+
+
+class Crash(Exception):
+    pass
+
+
+def test_interrupted_run_resumes_only_missing_steps(env):
+    steps = plan(env)
+    s = env.session(steps)
+    crash_at = at(steps, "trigger", 3).index
+
+    def crash(i, n, step):
+        if i == crash_at:
+            raise Crash("power cut")
+    with pytest.raises(Crash):
+        env.run(steps, s, progress=crash)
+    assert env.dark()
+    assert events(s, "stop")[-1]["status"] == "aborted" and "Crash" in events(s, "stop")[-1]["reason"]
+    first = {f.file: f.sha256 for f in s.frames()}
+    assert len(first) == 3 and len(events(s, "survey")) == 2
+
+    ran = []
+    result = env.run(steps, s, progress=lambda i, n, step: ran.append(step))
+    assert result.status == "complete" and env.dark()
+    frames = s.frames()
+    assert [f.pattern for f in frames] == ["ambient", "full", "x", "y", "z", "key"]
+    assert {f.file: f.sha256 for f in frames[:3]} == first          # nothing re-taken or overwritten
+    assert s.verify() == [] and len(events(s, "survey")) == 2       # surveys not repeated
+    assert [st.params["pattern"] for st in ran if st.kind == "upload"] == ["y", "z", "key"]
+    assert {st.frame for st in ran if st.kind == "fetch"} == {"y/cross", "z/cross", "key/cross"}
+    assert result.steps_skipped > 0
+
+
+def test_interlock_holds_while_over_temperature_then_continues(env):
+    steps = plan(env, ("gradients",))
+    s = env.session(steps)
+    env.model.force_over_temperature = True
+    seen = {}
+
+    def watcher():
+        wait_for(lambda: events(s, "hold"), what="hold event")
+        seen["dark_during_hold"] = env.dark()
+        seen["frames_during_hold"] = len(s.frames())
+        time.sleep(0.3)                     # several status polls while still hot
+        seen["still_holding"] = not events(s, "release")
+        env.model.force_over_temperature = False      # it cools
+
+    t = threading.Thread(target=watcher)
+    t.start()
+    result = env.run(steps, s)
+    t.join()
+    assert result.status == "complete" and result.holds == 1
+    assert seen == {"dark_during_hold": True, "frames_during_hold": 1, "still_holding": True}
+    kinds = [e["type"] for e in events(s)]
+    assert kinds.index("hold") < kinds.index("release")
+    assert [f.pattern for f in s.frames()] == ["ambient", "full", "x", "y", "z"]   # ambient came before
+    assert env.dark()
+
+
+def test_busy_sphere_is_retried(env):
+    steps = plan(env, ("gradients",))
+    s = env.session(steps)
+    busy_at = at(steps, "select", 2).index
+
+    def busy(i, n, step):
+        if i == busy_at and not events(s, "retry"):
+            env.model.busy_for(1)
+    result = env.run(steps, s, progress=busy)
+    assert result.status == "complete" and result.retries == 1
+    (r,) = events(s, "retry")
+    assert r["step"] == busy_at and "DeviceBusy" in r["error"]
+    assert len(s.frames()) == 5
+
+
+@pytest.mark.parametrize("role", ["trigger", "sphere"])
+def test_device_unplugged_mid_sequence_pauses_reconnects_resumes(env, role):
+    steps = plan(env, ("gradients",))
+    s = env.session(steps)
+    faults = env.sim.servers[role].faults
+    pull_at = at(steps, "select" if role == "trigger" else "trigger", 2).index
+    seen = {}
+
+    def pull(i, n, step):
+        if i == pull_at and "pulled" not in seen:
+            seen["pulled"] = True
+            faults.unplugged = True
+
+    def watcher():
+        wait_for(lambda: events(s, "lost"), what="lost event")
+        # the trigger's loss: the runner switches the sphere off; the sphere's: its own watchdog does
+        wait_for(env.dark, timeout_s=20, what="sphere dark")
+        seen["dark"] = True
+        seen["frames_while_lost"] = len(s.frames())
+        faults.unplugged = False          # plugged back in
+
+    t = threading.Thread(target=watcher)
+    t.start()
+    result = env.run(steps, s, progress=pull, lost_timeout_s=120.0)
+    t.join()
+    assert seen["dark"] and seen["frames_while_lost"] == 2
+    assert result.status == "complete" and result.reconnects >= 1
+    kinds = [e["type"] for e in events(s)]
+    assert kinds.index("lost") < kinds.index("reconnected") < len(kinds) - 1
+    assert [f.pattern for f in s.frames()] == ["ambient", "full", "x", "y", "z"] and s.verify() == []
+    assert env.dark()
+
+
+def test_total_station_dropping_its_tcp_client_is_reconnected(env):
+    steps = plan(env, ("gradients",))
+    s = env.session(steps)
+    survey = next(st for st in steps if st.kind == "survey").index
+    cut = []
+
+    def drop(i, n, step):
+        if i == survey and not cut:
+            cut.append(i)
+            env.sim.servers["total_station"].disconnect()      # the server closes the socket: link gone
+    result = env.run(steps, s, progress=drop)
+    assert result.status == "complete" and result.reconnects == 1
+    lost, = events(s, "lost")
+    assert lost["step"] == survey and "ConnectionLost" in lost["error"]
+    assert [e["step"] for e in events(s, "reconnected")] == [survey]
+    assert list(s.surveys()) == ["object_top"] and len(s.frames()) == 5
+
+
+@pytest.mark.parametrize("mode", ["wait", "stop"])
+def test_pause_at_checkpoint_then_resume(env, mode):
+    steps = plan(env, ("gradients",))
+    s = env.session(steps)
+    control = RunControl(pause_mode=mode)
+    ask_at = at(steps, "trigger", 1).index
+    seen = {}
+
+    def ask(i, n, step):
+        if i == ask_at and "asked" not in seen:
+            seen["asked"] = True
+            control.request_pause("test")
+
+    def resumer():
+        wait_for(lambda: events(s, "pause"), what="pause event")
+        seen["dark"], seen["frames"] = env.dark(), len(s.frames())
+        control.resume()
+
+    t = threading.Thread(target=resumer)
+    t.start()
+    result = env.run(steps, s, progress=ask, control=control)
+    t.join()
+    # the pause waited for the frame in progress: it came at the checkpoint after frame 2
+    assert seen["dark"] and seen["frames"] == 2
+    (p,) = events(s, "pause")
+    assert steps[p["step"]].kind == "checkpoint"
+    if mode == "wait":
+        assert result.status == "complete" and len(events(s, "resume")) == 1
+    else:
+        assert result.status == "paused" and events(s, "stop")[-1]["status"] == "paused"
+        assert s.status() == "paused" and len(s.frames()) == 2
+        result = env.run(steps, s, control=RunControl())
+        assert result.status == "complete"
+    assert len(s.frames()) == 5 and env.dark()
+
+
+def _drop_folder_gone(env, steps, s):
+    os.rename(env.sim.drop_folder, str(env.sim.drop_folder) + ".away")
+
+
+@pytest.mark.parametrize("path", ["refused", "exception", "trigger-lost", "sphere-lost", "abort",
+                                  "sigint-twice", "sigterm"])
+def test_sphere_dark_after_every_failure_path(env, path):
+    steps = plan(env, ("gradients",))
+    s = env.session(steps)
+    control = RunControl(pause_mode="wait")
+    trig = at(steps, "trigger", 2).index        # frame 3's pattern is lit at this step
+    fetch = at(steps, "fetch", 2).index
+    fired = set()
+
+    def inject(i, n, step):
+        if i in fired:
+            return
+        fired.add(i)
+        if i == trig:
+            if path == "refused":
+                env.model.nack_next(NackCode.BAD_ARGUMENT)   # the post-exposure status is refused
+            elif path == "exception":
+                os.rename(env.sim.drop_folder, str(env.sim.drop_folder) + ".away")
+            elif path == "trigger-lost":
+                env.sim.servers["trigger"].faults.unplugged = True
+            elif path == "sphere-lost":
+                env.sim.servers["sphere"].faults.unplugged = True
+            elif path == "abort":
+                control.abort("operator abort")
+            elif path in ("sigint-twice", "sigterm"):
+                os.kill(os.getpid(), signal.SIGINT if path == "sigint-twice" else signal.SIGTERM)
+        elif i == fetch and path == "sigint-twice":
+            assert control.state == "pausing"
+            os.kill(os.getpid(), signal.SIGINT)
+
+    expected = {"refused": DeviceRejected, "exception": FileNotFoundError, "trigger-lost": ConnectionLost,
+                "sphere-lost": ConnectionLost, "abort": Aborted, "sigint-twice": Aborted, "sigterm": Aborted}[path]
+    try:
+        with signal_handlers(control), pytest.raises(expected) as info:
+            env.run(steps, s, progress=inject, control=control, lost_timeout_s=0.5)
+    finally:
+        away = str(env.sim.drop_folder) + ".away"
+        if os.path.exists(away):
+            os.rename(away, env.sim.drop_folder)
+    assert env.model.frames_received > 0
+    if path == "sphere-lost":
+        wait_for(env.dark, timeout_s=20, what="the watchdog to darken the sphere")   # nobody could tell it
+        assert events(s, "stop")[-1]["lights_off"] is False
+    else:
+        assert env.dark() and events(s, "stop")[-1]["lights_off"] is True
+    stop = events(s, "stop")[-1]
+    assert stop["status"] == "aborted" and len(s.frames()) == 2
+    if path == "sigint-twice":
+        assert info.value.signum == signal.SIGINT and "second Ctrl-C" in stop["reason"]
+    if path == "sigterm":
+        assert info.value.signum == signal.SIGTERM and stop["reason"] == "SIGTERM"
+
+
+def test_step_timeout_bounds_the_wait_for_a_frame(env, tmp_path):
+    steps = [dataclasses.replace(st, timeout_s=0.3) if st.kind == "fetch" else st
+             for st in plan(env, ("gradients",))]
+    s = env.session(steps)
+    empty = tmp_path / "nothing-arrives"
+    empty.mkdir()
+    env.devices.camera = FolderCamera(empty)       # frames go to the simulator's folder, not this one
+    with pytest.raises(DeviceTimeout, match=r"within 0\.3 s"):
+        env.run(steps, s, max_lost_per_step=0)
+    retries = events(s, "retry")
+    assert len(retries) == 1 and steps[retries[0]["step"]].kind == "fetch"
+    assert env.dark() and s.frames() == []
+
+
+def test_progress_bar_counts_frames_and_gives_an_eta():
+    cfg = small_config()
+    steps = build_plan(cfg, rig_geometry(cfg).led_directions, estimate=("gradients",))
+    out = io.StringIO()
+    bar = ProgressBar(steps, out, tty=False)
+    for st in steps:
+        bar(st.index, len(steps), st, skipped=st.index < 3)
+    bar.close()
+    lines = out.getvalue().splitlines()
+    assert len(lines) == 5                          # one line per frame when not on a terminal
+    assert "frame 4/5" in lines[-1] and "ETA " in lines[-1]
+    pct = [int(line.split("]")[1].split("%")[0]) for line in lines]
+    assert pct == sorted(pct) and pct[-1] < 100
+
+
+def test_control_defers_a_signal_abort_out_of_journal_writes():
+    control = RunControl()
+    with pytest.raises(Aborted, match="SIGTERM"):
+        with control.critical():
+            control.interrupt("SIGTERM", signal.SIGTERM)   # inside: nothing raised yet
+            inside = True
+    assert inside and control.abort_requested
+    c2 = RunControl()
+    with c2.critical(discard=True):
+        c2.interrupt("late")
+    assert c2.abort_requested
+    c3 = RunControl()
+    c3.on_sigint()
+    assert c3.state == "pausing"
+    with pytest.raises(Aborted):
+        c3.on_sigint()
+
+
+def test_session_lock_refuses_a_second_writer(tmp_path):
+    from rig.session import SessionBusy
+    s = Session.create(tmp_path, "x", config={}, devices={}, plan=[])
+    with s.lock():
+        with pytest.raises(SessionBusy):
+            with Session.open(s.root).lock():
+                pass
+    with s.lock():
+        pass
+    json.loads((s.root / "manifest.json").read_text())
