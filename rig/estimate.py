@@ -66,6 +66,25 @@ class _Frames:
         return self._cache[key]
 
 
+def requested_channels(manifest: dict[str, Any]) -> list[int]:
+    """Indices (0..2) of the colour channels the session's request asked for (all three without a request).
+
+    A channel not requested is dark in every pattern (rig/plan.py): it is not processed, and its
+    parameters are reported as None ("not requested"), never fitted to darkness."""
+    req = manifest.get("request") or {}
+    names = [str(c).upper() for c in (req.get("channels") or "RGB")]
+    return [i for i, c in enumerate("RGB") if c in names]
+
+
+def _expand_channels(values: Any, idx: list[int]) -> list[Any]:
+    """Per-channel values of the requested channels -> a 3-list with None for the others."""
+    out: list[Any] = [None, None, None]
+    for j, i in enumerate(idx):
+        v = values[j]
+        out[i] = v.tolist() if isinstance(v, np.ndarray) else (v.item() if isinstance(v, np.generic) else v)
+    return out
+
+
 def _object_center(manifest: dict[str, Any], surveys: dict[str, Any]) -> np.ndarray:
     obj = manifest["config"]["object"]
     target = obj["survey_target"]
@@ -74,7 +93,7 @@ def _object_center(manifest: dict[str, Any], surveys: dict[str, Any]) -> np.ndar
     return np.asarray(surveys[target]["xyz_mm"], float) - np.asarray(obj["target_offset_mm"], float)
 
 
-def _pixel_faces(mesh, camera) -> np.ndarray:
+def pixel_faces(mesh, camera) -> np.ndarray:
     """Index of the mesh face seen by each pixel (H, W), -1 where no face covers the pixel centre.
 
     Front-facing faces are rasterized back to front (painter's order by centroid depth) into a face-ID
@@ -99,7 +118,7 @@ def _pixel_faces(mesh, camera) -> np.ndarray:
     return buf
 
 
-def _sample_at_points(img: np.ndarray, var: np.ndarray, valid: np.ndarray, camera, points_mm: np.ndarray,
+def sample_at_points(img: np.ndarray, var: np.ndarray, valid: np.ndarray, camera, points_mm: np.ndarray,
                       window_px: int = 3) -> tuple[np.ndarray, np.ndarray]:
     """Mean of valid pixels in a ``window_px`` square around each point's projection (bilinear between
     window centres), and the standard deviation of that mean. A symmetric window keeps the sampling
@@ -149,14 +168,15 @@ def run_single_image(frames: _Frames, manifest: dict[str, Any], surveys: dict[st
     mesh.apply_translation(center)
     patches = patches_from_mesh(mesh, camera)
     img, var, sat = frames.radiance("key")
-    faces = _pixel_faces(mesh, camera)
-    obs, sigma = _sample_at_points(img, var, (faces >= 0)[..., None] & ~sat, camera, patches.centers_mm)
+    faces = pixel_faces(mesh, camera)
+    obs, sigma = sample_at_points(img, var, (faces >= 0)[..., None] & ~sat, camera, patches.centers_mm)
     obs[~patches.visible] = np.nan      # back faces project onto the image too: never observed
     obs *= 2.0     # cross-polarized: half the diffuse light
     sigma *= 2.0
     eta = float(cfg["estimation"]["eta"])
-    res = estimate_single_image(obs, patches, PointLights(light_pos[None, :], intensity[None, :]), eta,
-                                method=cfg["estimation"]["single_image_method"], noise_sigma=sigma)
+    ch = requested_channels(manifest)
+    res = estimate_single_image(obs[:, ch], patches, PointLights(light_pos[None, :], intensity[None, ch]), eta,
+                                method=cfg["estimation"]["single_image_method"], noise_sigma=sigma[:, ch])
     seconds = time.perf_counter() - t0
     out: dict[str, Any] = {"estimator": "single-image", "success": bool(res), "message": res.message,
                            "method": res.method, "model": res.model, "eta": eta, "seconds": seconds,
@@ -164,12 +184,13 @@ def run_single_image(frames: _Frames, manifest: dict[str, Any], surveys: dict[st
                                       "object_center_mm": center.tolist(), "patches": len(mesh.faces),
                                       "observed_patches": int(np.isfinite(obs[:, 0]).sum()),
                                       "radiometry": "design values of the camera config (uncalibrated)"}}
+    out["channels"] = ["RGB"[i] for i in ch]
     if res:
+        out.update({key: _expand_channels(getattr(res, key), ch) for key in (
+            "sigma_s_prime_per_mm", "sigma_a_per_mm", "R_d", "l_d_mm", "D_mm", "sigma_s_prime_ci_per_mm",
+            "sigma_a_ci_per_mm")})
         out.update({
-            "sigma_s_prime_per_mm": res.sigma_s_prime_per_mm, "sigma_a_per_mm": res.sigma_a_per_mm,
-            "R_d": res.R_d, "l_d_mm": res.l_d_mm, "D_mm": res.D_mm,
-            "sigma_s_prime_ci_per_mm": res.sigma_s_prime_ci_per_mm, "sigma_a_ci_per_mm": res.sigma_a_ci_per_mm,
-            "sigma_a_identifiable": res.sigma_a_identifiable_per_channel,
+            "sigma_a_identifiable": _expand_channels(list(res.sigma_a_identifiable_per_channel), ch),
             "identifiability_reason": res.identifiability_reason,
             "diagnostics": {"condition_number": res.diagnostics.condition_number,
                             "relative_residual_rms": res.diagnostics.relative_residual_rms,
@@ -228,11 +249,14 @@ def run_gradients(frames: _Frames, manifest: dict[str, Any], surveys: dict[str, 
                    "object_center_mm": center.tolist(), "radius_mm": radius,
                    "albedo_scale": scale.tolist(),
                    "radiometry": "design values of the camera and LED config (uncalibrated)"}}
+    ch = requested_channels(manifest)
+    out["channels"] = ["RGB"[i] for i in ch]
     for key, name in (("R_d", "R_d"), ("sigma_s_prime_per_mm", "sigma_s_prime_per_mm"),
                       ("sigma_a_per_mm", "sigma_a_per_mm"), ("D_mm", "D_mm"), ("l_d_mm", "l_d_mm")):
         if name in summ.params:
-            out[key] = summ.params[name].value
-            out[key + "_interval"] = summ.params[name].interval
+            vals, intervals = np.asarray(summ.params[name].value), np.asarray(summ.params[name].interval)
+            out[key] = _expand_channels(vals[ch], ch)
+            out[key + "_interval"] = _expand_channels(intervals[ch], ch)
     return out
 
 
@@ -256,6 +280,8 @@ def _rows(name: str, est: dict[str, Any], truth: dict[str, Any] | None) -> list[
         if truth and tvals is None:
             tvals = _derived_truth(key, truth)
         for c, ch in enumerate("RGB"):
+            if ch not in est.get("channels", "RGB"):
+                continue        # not requested: not captured, not processed
             v = None if vals[c] is None or not np.isfinite(vals[c]) else float(vals[c])
             t = None if tvals is None else float(tvals[c])
             err = None if (v is None or t is None or t == 0) else (v - t) / t
@@ -298,7 +324,7 @@ def estimate_session(root: str | Path, *, log: Callable[[str], None] | None = No
         say(f"single-image estimate: {est['seconds']:.2f} s")
         results["single-image"] = est
         rows += _rows("single-image", est, truth)
-        if est.get("success") and not all(est["sigma_a_identifiable"]):
+        if est.get("success") and not all(v for v in est["sigma_a_identifiable"] if v is not None):
             notes.append("single-image: sigma_a not identifiable in some channels; "
                          + est.get("identifiability_reason", ""))
     return {"rows": rows, "notes": notes, "estimates": results}

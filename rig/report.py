@@ -81,7 +81,7 @@ def single_image_profile(session: Session) -> dict[str, Any] | None:
 
     from estimation.single_image import PointLights, estimate_single_image, patches_from_mesh
 
-    from .estimate import _Frames, _object_center, _pixel_faces, _sample_at_points
+    from .estimate import _Frames, _object_center, pixel_faces, sample_at_points
     from .geometry import camera_from_dict
 
     m = session.manifest
@@ -99,8 +99,8 @@ def single_image_profile(session: Session) -> dict[str, Any] | None:
     mesh.apply_translation(center)
     patches = patches_from_mesh(mesh, camera)
     img, var, sat = frames.radiance("key")
-    faces = _pixel_faces(mesh, camera)
-    obs, sigma = _sample_at_points(img, var, (faces >= 0)[..., None] & ~sat, camera, patches.centers_mm)
+    faces = pixel_faces(mesh, camera)
+    obs, sigma = sample_at_points(img, var, (faces >= 0)[..., None] & ~sat, camera, patches.centers_mm)
     obs[~patches.visible] = np.nan
     res = estimate_single_image(obs * 2.0, patches, PointLights(light[None, :], intensity[None, :]),
                                 float(cfg["estimation"]["eta"]), method="tikhonov", noise_sigma=sigma * 2.0)
@@ -181,9 +181,11 @@ def parameter_rows(estimates: dict[str, Any]) -> list[dict[str, Any]]:
             if iv is None and key in ("sigma_s_prime_per_mm", "sigma_a_per_mm"):
                 iv = est.get(key.replace("_per_mm", "_ci_per_mm"))
             for c, ch in enumerate("RGB"):
+                if ch not in est.get("channels", "RGB"):
+                    continue        # not requested: not captured, not processed
                 rows.append({"estimator": name, "parameter": label + (f" [{unit}]" if unit else ""), "channel": ch,
                              "value": None if vals[c] is None else float(vals[c]),
-                             "interval": None if iv is None else [float(iv[c][0]), float(iv[c][1])]})
+                             "interval": None if iv is None or iv[c] is None else [float(iv[c][0]), float(iv[c][1])]})
     return rows
 
 

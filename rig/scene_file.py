@@ -10,7 +10,7 @@ whose message names the scene file, the key and what was expected, e.g.
 
 From image to observations the project's own helpers are reused (``rig.estimate``): the mesh is rasterized into
 a face-ID buffer with OpenCV (object pixels), and each visible patch centre is sampled from the image by
-``_sample_at_points`` (mean over a ``window_px`` square, bilinear between window centres).
+``sample_at_points`` (mean over a ``window_px`` square, bilinear between window centres).
 """
 from __future__ import annotations
 
@@ -913,7 +913,7 @@ def estimate_scene(scene: Scene, *, method: str | None = None) -> dict[str, Any]
     """
     from estimation.single_image import estimate_single_image, patches_from_mesh
 
-    from .estimate import _pixel_faces, _sample_at_points
+    from .estimate import pixel_faces, sample_at_points
 
     t0 = time.perf_counter()
     meth = method or scene.estimation.method
@@ -927,23 +927,23 @@ def estimate_scene(scene: Scene, *, method: str | None = None) -> dict[str, Any]
     img = scene.image_data
     n_ch = img.shape[2]
     h, w = img.shape[:2]
-    faces = _pixel_faces(mesh, cam)
+    faces = pixel_faces(mesh, cam)
     on_object = faces >= 0
     user_ok = np.ones((h, w), bool) if scene.mask_data is None else scene.mask_data
     sat_ok = np.ones((h, w), bool) if scene.image.saturation is None else ~np.any(
         img >= scene.image.saturation, axis=2)
     valid = (on_object & user_ok & sat_ok)[..., None] & np.isfinite(img)
     var = _pixel_variance(scene)
-    obs, sigma = _sample_at_points(img, var, valid, cam, patches.centers_mm, window_px=est.window_px)
+    obs, sigma = sample_at_points(img, var, valid, cam, patches.centers_mm, window_px=est.window_px)
     obs[~patches.visible] = np.nan
 
     # what excluded the visible patches (a patch can be counted under several reasons)
     ones = np.ones((h, w, 1))
     vis_centers = patches.centers_mm[patches.visible]
-    base, _ = _sample_at_points(ones, ones * 0, on_object[..., None], cam, vis_centers, window_px=est.window_px)
+    base, _ = sample_at_points(ones, ones * 0, on_object[..., None], cam, vis_centers, window_px=est.window_px)
 
     def lost(extra_ok: NDArray[np.bool_]) -> int:
-        cut, _ = _sample_at_points(ones, ones * 0, (on_object & extra_ok)[..., None], cam, vis_centers,
+        cut, _ = sample_at_points(ones, ones * 0, (on_object & extra_ok)[..., None], cam, vis_centers,
                                    window_px=est.window_px)
         return int(np.sum(np.isfinite(base[:, 0]) & ~np.isfinite(cut[:, 0])))
 
