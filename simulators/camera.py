@@ -8,6 +8,7 @@ Gaussian read noise, on each photosite of an RGGB mosaic; 14-bit DNG with a blac
 """
 from __future__ import annotations
 
+import hashlib
 import queue
 import threading
 from dataclasses import dataclass
@@ -66,7 +67,8 @@ class SimulatedCamera:
         self.drop_folder = Path(drop_folder)
         self.drop_folder.mkdir(parents=True, exist_ok=True)
         self.sensor = sensor
-        self.rng = np.random.default_rng(seed)
+        self.seed = int(seed)
+        self.rng = np.random.default_rng(seed)   # for callers rendering their own shots (simulators/targets.py)
         self._emission = np.zeros((len(self.led_positions_mm), 3))
         self._polarization = Polarization.NONE
         self._lock = threading.Lock()
@@ -88,11 +90,23 @@ class SimulatedCamera:
         self._jobs.put(job)
 
     # --- rendering -----------------------------------------------------------------------------
+    def shot_rng(self, emission: npt.ArrayLike, polarization: Polarization, exposure_s: float
+                 ) -> np.random.Generator:
+        """The noise generator of one shot: seeded by the camera's seed and the shot itself (LED emission,
+        polarizer, exposure to 1 us). A frame re-taken after a crash (``rig resume``) is therefore
+        byte-identical to the one an uninterrupted session takes, whatever the simulator rendered before.
+        The same shot twice gives the same noise: average different shots, not repeats, to reduce it."""
+        h = hashlib.blake2b(digest_size=8)
+        h.update(np.ascontiguousarray(np.asarray(emission, np.float64)).tobytes())
+        h.update(Polarization(polarization).name.encode())
+        h.update(f"{round(float(exposure_s) * 1e6)}".encode())
+        return np.random.default_rng([self.seed & 0xFFFFFFFF, int.from_bytes(h.digest(), "little")])
+
     def render_raw(self, emission: npt.ArrayLike, polarization: Polarization, exposure_s: float
                    ) -> npt.NDArray[np.uint16]:
         res = render(self.obj, self.camera, self.led_positions_mm, np.asarray(emission, float),
                      polarization)
-        return expose(res.radiance, exposure_s, self.sensor, self.rng)
+        return expose(res.radiance, exposure_s, self.sensor, self.shot_rng(emission, polarization, exposure_s))
 
     def _work(self) -> None:
         while True:
