@@ -328,6 +328,9 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--json", action="store_true", help="print the summary as JSON instead of a table")
     p.set_defaults(func=_cmd_estimate)
 
+    from .calibration.cli import add_parser as add_calibrate
+    add_calibrate(sub)
+
     p = sub.add_parser("config", help="print the default config or --check a file")
     p.add_argument("--check", type=Path, default=None, help="validate this config file")
     p.set_defaults(func=_cmd_config)

@@ -48,6 +48,7 @@ class SimulatedRig:
     servers: dict[str, Any] = field(default_factory=dict)   # role -> simulator server (fault hooks, model)
     # role -> in-process transport a driver uses instead of a URL (FakeHidTriggerBox, SimulatedReleaseCable)
     transports: dict[str, Any] = field(default_factory=dict)
+    camera: Any = None      # the SimulatedCamera (calibration attaches its targets to it)
 
     def close(self) -> None:
         for c in reversed(self._closers):
@@ -122,6 +123,7 @@ def start_simulators(config: RigConfig, geometry: RigGeometry, workdir: Path | N
         "material": sc.material, "sigma_s_prime_per_mm": list(sc.sigma_s_prime_per_mm),
         "sigma_a_per_mm": list(sc.sigma_a_per_mm), "eta": sc.eta})
     rig._closers.append(simcam)
+    rig.camera = simcam
     try:
         if config.sphere.url == "sim" and config.sphere.driver.startswith("modbus"):
             from simulators.led_sphere_modbus import LedSphereModbusSim
