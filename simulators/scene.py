@@ -133,3 +133,368 @@ def render(obj: SphereObject, camera: PinholeCamera, led_positions_mm: FloatArra
     scale = 1.0 if polarization == Polarization.NONE else 0.5
     img[hit] = scale * diffuse + spec
     return RenderResult(img, hit)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# more objects: a slab with fine relief and a triangle mesh; gradient captures in both polarizations with noise
+# ---------------------------------------------------------------------------------------------------------------
+def _tangent_basis(normal: npt.ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """(n, e1, e2): unit normal and a right-handed tangent basis (for n = -y: e1 = +x, e2 = +z)."""
+    n = np.asarray(normal, float)
+    n = n / np.linalg.norm(n)
+    a = np.array([0.0, 0.0, 1.0]) if abs(n[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    e1 = np.cross(a, n)
+    e1 /= np.linalg.norm(e1)
+    return n, e1, np.cross(n, e1)
+
+
+@dataclass
+class BumpySlabObject:
+    """A thick slab of homogeneous material whose surface (through ``center_mm``, outward ``normal``) carries a fine
+    random relief h(u, v) = sum_k a_k cos(k_k . (u, v) + phi_k): ``n_waves`` plane waves with wavelengths
+    log-uniform in ``wavelengths_mm``, scaled to an RMS slope ``rms_slope`` (seeded by ``seed``).
+
+    The surface model is a square of side ``extent_mm`` sampled every ``patch_mm``; keep what the camera analyses
+    at least ~3 diffuse mean free paths l_d from its edges (light leaks out there). Subsurface transport: the dipole
+    BSSRDF of the other objects, with distances measured in the slab plane (the relief's slopes change them only
+    to second order), so the exitance is the 2-D convolution of the Fresnel-transmitted irradiance (times the
+    area element) with the cell-integrated profile — computed by FFT, which makes 10^5 source patches cheap.
+    """
+
+    center_mm: tuple[float, float, float]
+    sigma_s_prime_per_mm: tuple[float, float, float]
+    sigma_a_per_mm: tuple[float, float, float]
+    eta: float
+    normal: tuple[float, float, float] = (0.0, -1.0, 0.0)
+    extent_mm: float = 40.0
+    patch_mm: float = 0.1
+    rms_slope: float = 0.1
+    wavelengths_mm: tuple[float, float] = (1.5, 6.0)
+    n_waves: int = 24
+    seed: int = 0
+    specular_roughness: float = 0.15
+    _waves: tuple[FloatArray, FloatArray, FloatArray] | None = field(default=None, repr=False)
+
+    def waves(self) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Wave vectors (K, 2) [rad/mm], amplitudes (K,) [mm], phases (K,)."""
+        if self._waves is None:
+            rng = np.random.default_rng(self.seed)
+            lam = np.exp(rng.uniform(np.log(self.wavelengths_mm[0]), np.log(self.wavelengths_mm[1]), self.n_waves))
+            ang = rng.uniform(0, np.pi, self.n_waves)
+            k = (2 * np.pi / lam)[:, None] * np.stack([np.cos(ang), np.sin(ang)], 1)
+            amp = lam / lam.max()  # more amplitude at longer wavelengths, roughly equal slope per wave
+            slope_rms = np.sqrt(0.5 * np.sum((amp * np.linalg.norm(k, axis=1)) ** 2))
+            amp *= self.rms_slope / slope_rms
+            self._waves = (k, amp, rng.uniform(0, 2 * np.pi, self.n_waves))
+        return self._waves
+
+    def height(self, u: FloatArray, v: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """h(u, v) and its derivatives h_u, h_v [mm, dimensionless]."""
+        k, a, ph = self.waves()
+        h = np.zeros(np.shape(u))
+        hu = np.zeros(np.shape(u))
+        hv = np.zeros(np.shape(u))
+        for (kx, ky), ak, pk in zip(k, a, ph):
+            arg = kx * u + ky * v + pk
+            h += ak * np.cos(arg)
+            s = -ak * np.sin(arg)
+            hu += s * kx
+            hv += s * ky
+        return h, hu, hv
+
+    def _frame(self) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+        n, e1, e2 = _tangent_basis(self.normal)
+        return np.asarray(self.center_mm, float), n, e1, e2
+
+    def grid(self) -> FloatArray:
+        """Patch-centre coordinates u = v (n,) [mm] of the surface model."""
+        m = int(round(self.extent_mm / self.patch_mm))
+        return (np.arange(m) - (m - 1) / 2) * self.patch_mm
+
+    def patches(self) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Patch centres (K, 3), outward normals (K, 3), areas (K,) of the relief surface (row-major u, v grid)."""
+        c, n, e1, e2 = self._frame()
+        g = self.grid()
+        uu, vv = np.meshgrid(g, g, indexing="ij")
+        h, hu, hv = self.height(uu, vv)
+        pts = c + uu[..., None] * e1 + vv[..., None] * e2 + h[..., None] * n
+        nrm = n - hu[..., None] * e1 - hv[..., None] * e2
+        da = np.linalg.norm(nrm, axis=-1)
+        return pts.reshape(-1, 3), (nrm / da[..., None]).reshape(-1, 3), (da * self.patch_mm ** 2).reshape(-1)
+
+    def intersect(self, camera: PinholeCamera) -> tuple[FloatArray, npt.NDArray[np.bool_]]:
+        """Ray / height-field intersection (Newton on the signed height, from the mean plane)."""
+        origins, dirs = camera.pixel_rays()
+        c, n, e1, e2 = self._frame()
+        dn = dirs @ n
+        t = ((c - origins) @ n) / np.where(np.abs(dn) > 1e-12, dn, np.nan)
+        for _ in range(20):
+            p = origins + t[..., None] * dirs - c
+            u, v, w = p @ e1, p @ e2, p @ n
+            h, hu, hv = self.height(u, v)
+            f = w - h
+            fp = dn - hu * (dirs @ e1) - hv * (dirs @ e2)
+            t = t - f / fp
+        pts = origins + t[..., None] * dirs
+        p = pts - c
+        half = 0.5 * self.extent_mm
+        hit = np.isfinite(t) & (t > 0) & (np.abs(p @ e1) < half) & (np.abs(p @ e2) < half) & (dn < 0)
+        pts[~hit] = np.nan
+        return pts, hit
+
+    def normals_at(self, points_mm: FloatArray) -> FloatArray:
+        c, n, e1, e2 = self._frame()
+        p = np.asarray(points_mm, float) - c
+        _, hu, hv = self.height(p @ e1, p @ e2)
+        nrm = n - hu[..., None] * e1 - hv[..., None] * e2
+        return nrm / np.linalg.norm(nrm, axis=-1, keepdims=True)
+
+    def kernel(self, size: int) -> FloatArray:
+        """Cell-integrated profile int_cell R dA (size, size, 3) centred at [0, 0] (wrapped FFT layout): 4 x 4
+        sub-samples per cell, the centre cell from the exact disk integral of equal area (never R(0))."""
+        from estimation.dipole import cumulative_disk, profile
+        ssp, sa = np.asarray(self.sigma_s_prime_per_mm, float), np.asarray(self.sigma_a_per_mm, float)
+        i = np.fft.fftfreq(size, 1.0 / size)
+        h = self.patch_mm
+        sub = (np.arange(4) + 0.5) / 4 - 0.5
+        out = np.zeros((size, size, 3))
+        for a in sub:
+            for b in sub:
+                r = np.hypot((i[:, None] + a) * h, (i[None, :] + b) * h)
+                out += profile(r[..., None], ssp, sa, self.eta) * (h * h / 16)
+        out[0, 0] = cumulative_disk(h / np.sqrt(np.pi), ssp, sa, self.eta)
+        return out
+
+    def exitance(self, points_mm: FloatArray, led_positions_mm: FloatArray,
+                 emissions: list[FloatArray]) -> list[FloatArray]:
+        """Diffuse exitance B (P, 3) at surface ``points_mm`` for each LED emission (N, 3) (FFT convolution)."""
+        centers, normals, areas = self.patches()
+        m = self.grid().size
+        size = int(2 ** np.ceil(np.log2(2 * m)))  # zero padding: linear (not circular) convolution
+        kf = np.fft.rfft2(self.kernel(size), axes=(0, 1))
+        c, _, e1, e2 = self._frame()
+        p = np.asarray(points_mm, float) - c
+        g0 = self.grid()[0]
+        fu = np.clip((p @ e1 - g0) / self.patch_mm, 0, m - 1.000001)
+        fv = np.clip((p @ e2 - g0) / self.patch_mm, 0, m - 1.000001)
+        iu, iv = fu.astype(int), fv.astype(int)
+        wu, wv = (fu - iu)[:, None], (fv - iv)[:, None]
+        out = []
+        for em in emissions:
+            src = led_irradiance(centers, normals, led_positions_mm, em, self.eta) * (areas / self.patch_mm ** 2)[:, None]
+            pad = np.zeros((size, size, 3))
+            pad[:m, :m] = src.reshape(m, m, 3)
+            b = np.fft.irfft2(np.fft.rfft2(pad, axes=(0, 1)) * kf, s=(size, size), axes=(0, 1))[:m, :m]
+            out.append((b[iu, iv] * (1 - wu) * (1 - wv) + b[iu + 1, iv] * wu * (1 - wv)
+                        + b[iu, iv + 1] * (1 - wu) * wv + b[iu + 1, iv + 1] * wu * wv))
+        return out
+
+
+@dataclass
+class MeshObject:
+    """A closed triangle mesh (``trimesh.Trimesh``, outward normals, mm) of homogeneous material.
+
+    Patches: the mesh faces after ``subdivisions`` midpoint subdivisions. Pixel normals: the vertex normals
+    interpolated barycentrically over the face the ray hits (a smooth shading normal, like a scanned mesh's).
+    Subsurface transport: :func:`estimation.forward.diffuse_exitance` over the patches, as for the sphere.
+    """
+
+    mesh: trimesh.Trimesh
+    sigma_s_prime_per_mm: tuple[float, float, float]
+    sigma_a_per_mm: tuple[float, float, float]
+    eta: float
+    subdivisions: int = 0
+    specular_roughness: float = 0.15
+
+    def patches(self) -> tuple[FloatArray, FloatArray, FloatArray]:
+        m = self.mesh
+        for _ in range(self.subdivisions):
+            m = m.subdivide()
+        return (np.asarray(m.triangles_center, float), np.asarray(m.face_normals, float),
+                np.asarray(m.area_faces, float))
+
+    def _hits(self, origins: FloatArray, dirs: FloatArray) -> tuple[FloatArray, npt.NDArray[np.intp],
+                                                                     FloatArray, FloatArray]:
+        """Nearest hit of each ray (M, 3): t (inf if none), face index, barycentrics (b1, b2) (Moller-Trumbore)."""
+        tri = np.asarray(self.mesh.triangles, float)
+        v0, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+        M = origins.shape[0]
+        best = np.full(M, np.inf)
+        face = np.full(M, -1, np.intp)
+        bb1 = np.zeros(M)
+        bb2 = np.zeros(M)
+        step = max(1, 500_000 // max(len(tri), 1))  # (step, F, 3) float64 temporaries of ~12 MB
+        with np.errstate(divide="ignore", invalid="ignore"):
+            for s in range(0, M, step):
+                o, d = origins[s:s + step, None, :], dirs[s:s + step, None, :]
+                pv = np.cross(d, e2[None])
+                det = np.sum(e1[None] * pv, -1)
+                inv = 1.0 / det
+                tv = o - v0[None]
+                b1 = np.sum(tv * pv, -1) * inv
+                qv = np.cross(tv, e1[None])
+                b2 = np.sum(d * qv, -1) * inv
+                t = np.sum(e2[None] * qv, -1) * inv
+                ok = (np.abs(det) > 1e-12) & (b1 >= 0) & (b2 >= 0) & (b1 + b2 <= 1) & (t > 1e-9)
+                t = np.where(ok, t, np.inf)
+                j = np.argmin(t, axis=1)
+                r = np.arange(t.shape[0])
+                best[s:s + step] = t[r, j]
+                face[s:s + step] = j
+                bb1[s:s + step] = b1[r, j]
+                bb2[s:s + step] = b2[r, j]
+        return best, face, bb1, bb2
+
+    def intersect(self, camera: PinholeCamera) -> tuple[FloatArray, npt.NDArray[np.bool_]]:
+        origins, dirs = camera.pixel_rays()
+        shape = dirs.shape[:2]
+        t, _, _, _ = self._hits(origins.reshape(-1, 3), dirs.reshape(-1, 3))
+        hit = np.isfinite(t).reshape(shape)
+        pts = origins + np.where(hit, t.reshape(shape), np.nan)[..., None] * dirs
+        return pts, hit
+
+    def normals_at(self, points_mm: FloatArray) -> FloatArray:
+        """Interpolated vertex normals at surface points (located by a short ray along the face normal field)."""
+        p = np.asarray(points_mm, float).reshape(-1, 3)
+        c = np.asarray(self.mesh.centroid, float)
+        d = p - c
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        # cast from outside, back towards the centroid: for a star-shaped mesh this finds the point's own face
+        t, face, b1, b2 = self._hits(p + 1e-3 * d, -d)
+        vn = np.asarray(self.mesh.vertex_normals, float)[np.asarray(self.mesh.faces)[np.maximum(face, 0)]]
+        n = (1 - b1 - b2)[:, None] * vn[:, 0] + b1[:, None] * vn[:, 1] + b2[:, None] * vn[:, 2]
+        n /= np.linalg.norm(n, axis=1, keepdims=True)
+        return n.reshape(np.shape(points_mm))
+
+    def exitance(self, points_mm: FloatArray, led_positions_mm: FloatArray,
+                 emissions: list[FloatArray]) -> list[FloatArray]:
+        return _patch_exitance(self, points_mm, led_positions_mm, emissions)
+
+
+def _patch_exitance(obj: SphereObject | MeshObject, points_mm: FloatArray, led_positions_mm: FloatArray,
+                    emissions: list[FloatArray]) -> list[FloatArray]:
+    centers, normals, areas = obj.patches()
+    out = []
+    for em in emissions:
+        e_t = led_irradiance(centers, normals, led_positions_mm, em, obj.eta)
+        out.append(diffuse_exitance(points_mm, centers, areas, e_t, np.asarray(obj.sigma_s_prime_per_mm),
+                                    np.asarray(obj.sigma_a_per_mm), obj.eta))
+    return out
+
+
+SceneObject = SphereObject | BumpySlabObject | MeshObject
+
+
+def _exitance(obj: SceneObject, points_mm: FloatArray, led_positions_mm: FloatArray,
+              emissions: list[FloatArray]) -> list[FloatArray]:
+    if isinstance(obj, SphereObject):
+        return _patch_exitance(obj, points_mm, led_positions_mm, emissions)
+    return obj.exitance(points_mm, led_positions_mm, emissions)
+
+
+def render_object(obj: SceneObject, camera: PinholeCamera, led_positions_mm: FloatArray,
+                  led_radiant_intensity: FloatArray, polarization: Polarization,
+                  *, include_specular: bool = True) -> RenderResult:
+    """:func:`render` for any scene object (sphere, bumpy slab, mesh); for a sphere it computes the same image."""
+    H, W = camera.height_px, camera.width_px
+    img = np.zeros((H, W, 3))
+    pts, hit = obj.intersect(camera)
+    if not np.any(led_radiant_intensity > 0) or not hit.any():
+        return RenderResult(img, hit)
+    p = pts[hit]
+    n = obj.normals_at(p)
+    v = camera.view_directions(p)
+    cos_o = np.clip(np.sum(n * v, axis=-1), 0.0, 1.0)
+    b = _exitance(obj, p, led_positions_mm, [np.asarray(led_radiant_intensity, float)])[0]
+    diffuse = fresnel_transmittance(obj.eta, cos_o)[:, None] / np.pi * b
+    spec = 0.0
+    if include_specular and polarization != Polarization.CROSS:
+        spec = specular_radiance(p, n, v, led_positions_mm, led_radiant_intensity, obj.eta, obj.specular_roughness)
+    img[hit] = (1.0 if polarization == Polarization.NONE else 0.5) * diffuse + spec
+    return RenderResult(img, hit)
+
+
+@dataclass
+class GradientCapture:
+    """Frames of one gradient capture and the truth behind them.
+
+    ``frames``: {(pattern, "cross" | "parallel"): (H, W, 3) float32}, linear, black-subtracted, 1.0 = white level
+    (the convention of ``drivers.contracts.RawFrame``), patterns "ambient" and those requested.
+    ``value_per_radiance``: frame value per unit radiance (gain x exposure / (white - black)), for
+    ``estimation.gradients.albedo_scale_from_radiometry``. ``normals``, ``points_mm``, ``view_dirs``: (H, W, 3),
+    NaN off the object; ``hit`` (H, W).
+    """
+
+    frames: dict[tuple[str, str], npt.NDArray[np.float32]]
+    value_per_radiance: float
+    normals: FloatArray
+    points_mm: FloatArray
+    view_dirs: FloatArray
+    hit: npt.NDArray[np.bool_]
+
+
+def render_gradient_capture(obj: SceneObject, camera: PinholeCamera, led_positions_mm: npt.ArrayLike,
+                            led_intensity: npt.ArrayLike, patterns: dict[str, npt.ArrayLike], *,
+                            polarizations: tuple[str, ...] = ("cross", "parallel"), exposure_s: float = 1.0,
+                            sensor: object | None = None, noise: bool = True, rng: np.random.Generator | None = None,
+                            ambient_radiance: float = 0.0) -> GradientCapture:
+    """Render a polarized spherical-gradient capture of ``obj`` (Ma et al. 2007; science.md sec. 3).
+
+    ``patterns``: {name: LED drive values (N,) or (N, 3) in [0, 1]} (e.g. full, x, y, z, x_c, ...), each LED's
+    emission being ``led_intensity`` (N, 3) x drive. Per pattern the subsurface exitance is computed once and
+    shared by both polarizations: cross = diffuse/2, parallel = diffuse/2 + GGX specular (polarization-preserving).
+    An "ambient" frame (all LEDs off, plus ``ambient_radiance``) is added for each polarization.
+    ``sensor`` (``simulators.camera.SensorModel``): Poisson-Gaussian noise of the simulated camera on each
+    photosite of its RGGB mosaic (``simulators.camera.expose``), read back one RGB pixel per 2 x 2 cell (green:
+    the mean of the two sites), black-subtracted and divided by (white - black); ``noise=False`` gives the
+    expected values of the same sensor (clipped at white). Without a sensor: radiance x ``exposure_s``, clipped at 1.
+    """
+    from .camera import expose  # deferred: simulators.camera imports this module
+
+    pos = np.asarray(led_positions_mm, float)
+    inten = np.asarray(led_intensity, float)
+    H, W = camera.height_px, camera.width_px
+    pts, hit = obj.intersect(camera)
+    p = pts[hit]
+    n = obj.normals_at(p)
+    v = camera.view_directions(p)
+    ft = fresnel_transmittance(obj.eta, np.clip(np.sum(n * v, axis=-1), 0.0, 1.0))[:, None] / np.pi
+    names = list(patterns)
+    emissions = []
+    for name in names:
+        drive = np.asarray(patterns[name], float)
+        emissions.append(inten * (drive[:, None] if drive.ndim == 1 else drive))
+    diffuse = _exitance(obj, p, pos, emissions) if hit.any() else [np.zeros((0, 3))] * len(names)
+    if sensor is not None:
+        gain = float(sensor.gain_dn_per_unit) * exposure_s  # type: ignore[attr-defined]
+        span = float(sensor.white_level_dn - sensor.black_level_dn)  # type: ignore[attr-defined]
+        k = gain / span
+    else:
+        k = exposure_s
+    rng = rng or np.random.default_rng(0)
+    frames: dict[tuple[str, str], npt.NDArray[np.float32]] = {}
+
+    def finish(radiance: FloatArray) -> npt.NDArray[np.float32]:
+        if sensor is None or not noise:
+            return np.clip(radiance * k, 0.0, 1.0).astype(np.float32)
+        raw = expose(radiance, exposure_s, sensor, rng).astype(float)  # type: ignore[arg-type]
+        rgb = np.stack([raw[0::2, 0::2], 0.5 * (raw[0::2, 1::2] + raw[1::2, 0::2]), raw[1::2, 1::2]], -1)
+        return ((rgb - sensor.black_level_dn) / span).astype(np.float32)  # type: ignore[attr-defined]
+
+    for pol in polarizations:
+        if pol not in ("cross", "parallel"):
+            raise ValueError(f"unknown polarization {pol!r}; valid: cross, parallel")
+        amb = np.full((H, W, 3), float(ambient_radiance))
+        frames[("ambient", pol)] = finish(amb)
+        for name, em, b in zip(names, emissions, diffuse):
+            img = np.zeros((H, W, 3))
+            val = 0.5 * ft * b + ambient_radiance
+            if pol == "parallel" and hit.any():
+                val = val + specular_radiance(p, n, v, pos, em, obj.eta, obj.specular_roughness)
+            img[hit] = val
+            frames[(name, pol)] = finish(img)
+    normals = np.full((H, W, 3), np.nan)
+    normals[hit] = n
+    view = np.full((H, W, 3), np.nan)
+    view[hit] = v
+    return GradientCapture(frames, k, normals, pts, view, hit)

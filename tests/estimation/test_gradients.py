@@ -440,3 +440,55 @@ def test_garbage_frames_give_nan_or_finite_never_inf(seed: int, ideal: bool) -> 
     for arr in (m.albedo, m.diffuse_vectors, m.diffuse_normals):
         assert not np.isinf(arr).any()
         assert np.array_equal(np.isnan(arr).reshape(6, 5, 3, -1).any(-1), m.unknown)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# large frames: memory maps in, memory maps out, bounded working memory
+# ---------------------------------------------------------------------------------------------------------------
+def test_memory_mapped_outputs_equal_in_memory_results(rig, tmp_path) -> None:
+    """Frames as .npy memory maps, outputs written tile by tile into memory maps (out_dir): the same numbers as the
+    in-RAM path, readable back from the files; a float32 view_dirs map is kept by reference, not copied."""
+    leds, lut = rig
+    n = sphere_normals(40)
+    fr = flat_led_frames(n, leds, np.array([0.7, 0.4, 0.2]), value_scale=0.5, ambient=0.003)
+    mm = {}
+    for k, a in fr.items():
+        mm[k] = np.lib.format.open_memmap(tmp_path / f"in_{k}.npy", "w+", np.float32, a.shape)
+        mm[k][...] = a
+    view = np.lib.format.open_memmap(tmp_path / "view.npy", "w+", np.float32, (40, 40, 3))
+    view[...] = VIEW
+    ram = compute_maps(fr, albedo_scale=2.0, lut=lut, view_dirs=np.array(view), tile_rows=9)
+    out = compute_maps(mm, albedo_scale=2.0, lut=lut, view_dirs=view, tile_rows=9, out_dir=tmp_path / "maps")
+    for name in ("albedo", "diffuse_vectors", "diffuse_normals", "consistency"):
+        a, b = getattr(ram, name), getattr(out, name)
+        assert isinstance(b, np.memmap)
+        np.testing.assert_array_equal(a, b)
+        np.testing.assert_array_equal(np.load(tmp_path / "maps" / f"{name}.npy"), a)
+    np.testing.assert_array_equal(ram.unknown, out.unknown)
+    assert np.load(tmp_path / "maps" / "mask_background.npy").shape == (40, 40)
+    assert out.view_dirs is view and out.provenance["storage"].startswith("memory maps")
+    # the default view direction is a zero-stride view, not a frame-sized copy
+    assert ram.view_dirs.strides[:2] == (0, 0) or np.shares_memory(ram.view_dirs, view) is False
+
+
+def test_working_memory_is_bounded_by_the_tile(rig, tmp_path) -> None:
+    """With memory-mapped frames and out_dir, the numpy memory allocated during compute_maps (tracemalloc: numpy
+    registers its buffers) stays far below the frame set (115 MB here): blocks of 16384 pixels (~10 MB of
+    temporaries with all seven patterns), never a frame-sized array."""
+    import tracemalloc
+
+    leds, lut = rig
+    H, W = 800, 1200
+    small = flat_led_frames(sphere_normals(400), leds, np.array([0.6, 0.5, 0.4]), value_scale=0.5, ambient=0.002)
+    mm = {}
+    for k, a in small.items():
+        mm[k] = np.lib.format.open_memmap(tmp_path / f"{k}.npy", "w+", np.float32, (H, W, 3))
+        mm[k][...] = np.tile(a, (2, 3, 1))
+    frame_set = len(mm) * H * W * 3 * 4
+    compute_maps({k: v[:8] for k, v in mm.items()}, albedo_scale=2.0, lut=lut)  # solve table built and cached
+    tracemalloc.start()
+    m = compute_maps(mm, albedo_scale=2.0, lut=lut, tile_rows=64, out_dir=tmp_path / "maps")
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert (~m.unknown).sum() > 0.5 * H * W
+    assert peak < 0.25 * frame_set, (peak, frame_set)
