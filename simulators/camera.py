@@ -21,7 +21,7 @@ from drivers.contracts import Polarization
 from estimation.camera import PinholeCamera
 
 from .dng import write_cfa_dng
-from .scene import SphereObject, render
+from .scene import SceneObject, render_object
 
 
 @dataclass(frozen=True)
@@ -57,7 +57,7 @@ def expose(radiance: npt.NDArray[np.float64], exposure_s: float, sensor: SensorM
 class SimulatedCamera:
     """Couples the LED and trigger simulators to a renderer and a drop folder."""
 
-    def __init__(self, obj: SphereObject, camera: PinholeCamera, led_positions_mm: npt.ArrayLike,
+    def __init__(self, obj: SceneObject, camera: PinholeCamera, led_positions_mm: npt.ArrayLike,
                  led_intensity: npt.ArrayLike, drop_folder: str | Path, sensor: SensorModel,
                  *, seed: int = 0) -> None:
         self.obj = obj
@@ -104,7 +104,7 @@ class SimulatedCamera:
 
     def render_raw(self, emission: npt.ArrayLike, polarization: Polarization, exposure_s: float
                    ) -> npt.NDArray[np.uint16]:
-        res = render(self.obj, self.camera, self.led_positions_mm, np.asarray(emission, float),
+        res = render_object(self.obj, self.camera, self.led_positions_mm, np.asarray(emission, float),
                      polarization)
         return expose(res.radiance, exposure_s, self.sensor, self.shot_rng(emission, polarization, exposure_s))
 
