@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import datetime as _dt
+import hashlib
 import os
 import tempfile
 import time
@@ -89,19 +90,60 @@ class Rig:
 
 
 @contextlib.contextmanager
-def open_rig(config: RigConfig) -> Iterator[Rig]:
+def open_rig(config: RigConfig, *, sim_world: Any | None = None) -> Iterator[Rig]:
     """Start the simulators the config asks for, open every device; close all on exit (the sphere's driver
-    switches it off on close)."""
+    switches it off on close).
+
+    ``sim_world`` (a ``rig.calibration.simworld.SimulatedCalibrationWorld``, simulated rigs only): the simulators
+    run that world's *true* rig instead of the design (LED positions and gains, camera pose, intrinsics and lens
+    distortion, black pedestal, sensor nonlinearity, PSF; what ``rig calibrate --sim`` measures) and its camera
+    renders the config's ``[scene]`` object through it. The drivers still aim from the design geometry."""
     geo = rig_geometry(config)
     with contextlib.ExitStack() as stack:
         sim = None
         if uses_simulators(config):
             work = stack.enter_context(tempfile.TemporaryDirectory(prefix="sssrig-sim-"))
-            sim = start_simulators(config, geo, Path(work))
+            sim = start_simulators(config, geo if sim_world is None else sim_world.truth_geometry(), Path(work))
             stack.callback(sim.close)
+            if sim_world is not None:
+                _render_scene_in(sim_world, config, sim)
+        elif sim_world is not None:
+            raise ValueError("sim_world needs a simulated rig (device URLs 'sim'; see rig.capture.simulated)")
         devices = open_devices(config, geo, sim)
         stack.callback(devices.close)
+        if sim_world is not None and hasattr(devices.trigger, "wait_for_exposure"):
+            devices.trigger.wait_for_exposure = False   # the simulated camera renders at once
         yield Rig(config, geo, devices, sim)
+
+
+def _render_scene_in(world: Any, config: RigConfig, sim: SimulatedRig) -> None:
+    """Make the simulated camera of ``sim`` render the ``[scene]`` object in ``world``'s true rig."""
+    from simulators.scene import SphereObject
+    from simulators.targets import TranslucentSphereTarget
+
+    sc = config.scene
+    world.world.target = TranslucentSphereTarget(SphereObject(sc.center_mm, sc.radius_mm, sc.sigma_s_prime_per_mm,
+                                                              sc.sigma_a_per_mm, sc.eta,
+                                                              tessellation=sc.tessellation))
+    world.attach(sim)
+    sim.truth = {**sim.truth, "rig": world.truth_dict()}
+
+
+def calibration_record(path: str | os.PathLike[str], config: RigConfig | None = None) -> dict[str, Any]:
+    """The manifest's ``calibration`` field for the calibration file at ``path``: absolute ``file``, ``rig``,
+    ``revision``, ``sha256`` of its bytes. The file is validated (``CalibrationError`` naming the file and field)
+    and must belong to ``config``'s rig."""
+    from .calibration.store import CalibrationError, load_calibration
+
+    p = Path(path).resolve()
+    cal = load_calibration(p)
+    rig_name = cal.doc.get("rig")
+    if config is not None and rig_name != config.name:
+        raise CalibrationError(p, "rig", f"the rig being captured ({config.name!r}, [rig] name of "
+                               f"{config.source or 'the config'})", rig_name)
+    return {"file": str(p), "rig": rig_name, "revision": int(cal.doc["revision"]),
+            "sha256": hashlib.sha256(p.read_bytes()).hexdigest(),
+            "sections": sorted(cal.doc["steps"])}
 
 
 def default_session_name(prefix: str = "capture") -> str:
@@ -134,27 +176,35 @@ def _run(session: Session, steps: list[Step], rig: Rig, led_directions: np.ndarr
 
 def capture(config: RigConfig, request: CaptureRequest, *, sessions_dir: str | Path, name: str | None = None,
             control: RunControl | None = None, progress_factory: Callable[[list[Step]], Any] | None = None,
-            say: Callable[[str], None] | None = None, run_options: dict[str, Any] | None = None) -> Outcome:
+            say: Callable[[str], None] | None = None, run_options: dict[str, Any] | None = None,
+            calibration: str | os.PathLike[str] | None = None, sim_world: Any | None = None) -> Outcome:
     """Plan ``request`` on ``config``'s rig, create the session, run the plan.
 
-    Refuses before touching a device if the name is invalid or taken, or the plan has problems (current over
-    the limit, a watchdog shorter than an exposure...: :func:`rig.plan.budget`)."""
+    ``calibration``: a calibration file (``rig calibrate``) to record in the manifest (path, revision, SHA-256;
+    :func:`calibration_record`): ``rig estimate session`` then uses it. ``sim_world``: see :func:`open_rig`.
+
+    Refuses before touching a device if the name is invalid or taken, the calibration file is invalid or of
+    another rig, or the plan has problems (current over the limit, a watchdog shorter than an exposure...:
+    :func:`rig.plan.budget`)."""
     say = say or (lambda m: None)
     name = validate_session_name(name or default_session_name())
     if (Path(sessions_dir) / name).exists():
         raise SessionError(f"{Path(sessions_dir) / name}: a session with this name exists; choose another "
                            "name or `rig resume` it")
+    cal_record = calibration_record(calibration, config) if calibration is not None else None
     geo = rig_geometry(config)
     steps = build_plan(config, geo.led_directions, request=request)
     problems = budget(steps, config)["problems"]
     if problems:
         raise LimitError("the plan cannot run safely: " + "; ".join(problems))
-    with open_rig(config) as rig:
+    with open_rig(config, sim_world=sim_world) as rig:
         ids = rig.identities()
         truth = rig.sim.truth if rig.sim is not None and "camera" in rig.sim.urls else None
         session = Session.create(sessions_dir, name, config=config.to_dict(), devices=ids,
                                  plan=[s.to_dict() for s in steps], geometry=geometry_to_dict(rig.geometry),
-                                 truth=truth, request=request.resolved(config).to_dict())
+                                 truth=truth, request=request.resolved(config).to_dict(), calibration=cal_record)
+        if cal_record is not None:
+            say(f"calibration {cal_record['file']} (revision {cal_record['revision']})")
         say(f"session {session.root}")
         progress = progress_factory(steps) if progress_factory else None
         with session.lock():

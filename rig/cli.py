@@ -180,9 +180,17 @@ def _cmd_capture(args: argparse.Namespace) -> int:
     if args.sim:
         cfg = simulated(cfg)
     req = _request(args)
+    world = None
+    if args.sim_world:
+        if not args.sim:
+            raise SystemExit("rig capture: error: --sim-world needs --sim (it replaces the simulated rig)")
+        from .calibration.run import make_world
+        from .calibration.settings import load_settings
+        world = make_world(cfg, load_settings(cfg))
     return _run_guarded(args, lambda control: capture(
         cfg, req, sessions_dir=args.sessions, name=args.name, control=control,
-        progress_factory=_progress_factory(args), say=None if args.json else _say(args)))
+        progress_factory=_progress_factory(args), say=None if args.json else _say(args),
+        calibration=args.calibration, sim_world=world))
 
 
 def _cmd_resume(args: argparse.Namespace) -> int:
@@ -230,7 +238,8 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
         return run_folder(args)
     from .estimate import estimate_session
     from .session import _json_default
-    out = estimate_session(args.session, log=None if args.json else (lambda m: print(m, file=sys.stderr)))
+    out = estimate_session(args.session, calibration=args.calibration,
+                           log=None if args.json else (lambda m: print(m, file=sys.stderr)))
     if args.json:
         print(json.dumps(out, indent=2, default=_json_default))
     else:
@@ -281,6 +290,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sim", action="store_true", help="simulate every device (else only those with url 'sim')")
     p.add_argument("--sessions", type=Path, default=Path("sessions"), help="folder for session folders")
     p.add_argument("--name", default=None, help="session name (default: capture-<timestamp>)")
+    p.add_argument("--calibration", type=Path, default=None, metavar="FILE",
+                   help="calibration file (`rig calibrate`) to record in the manifest (path, revision, SHA-256); "
+                        "`rig estimate session` then uses it")
+    p.add_argument("--sim-world", action="store_true",
+                   help="with --sim: simulate the perturbed true rig that `rig calibrate --sim` measures (same "
+                        "config and [scene] seed) instead of the design rig")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--json", action="store_true", help="print the outcome as JSON")
     p.set_defaults(func=_cmd_capture)
@@ -311,6 +326,9 @@ def build_parser() -> argparse.ArgumentParser:
     esub = p.add_subparsers(dest="what", required=True, metavar="WHAT")
     q = esub.add_parser("session", help="run every estimator a session folder has frames for")
     q.add_argument("session", type=Path, help="session folder (docs/session-format.md)")
+    q.add_argument("--calibration", type=Path, default=None, metavar="FILE",
+                   help="calibration file to use (default: the one the manifest records, which must be unchanged; "
+                        "without one, the design values)")
     q.add_argument("--json", action="store_true", help="print the result as JSON")
     q = esub.add_parser("single-image", help="single-image method on a scene file (docs/scene-file.md)")
     q.add_argument("scene", type=Path, help="scene file (TOML)")

@@ -2,10 +2,20 @@
 
 Radiometry: a frame's linear value v (white level = 1) is converted to radiance with the camera's
 design response, L = v (white - black) / (gain x exposure); a cross-polarized frame holds half the
-diffuse light (Ma et al. 2007), so diffuse radiance = 2 L. On a real rig these come from calibration.
+diffuse light (Ma et al. 2007), so diffuse radiance = 2 L.
+
+With a calibration file (``rig calibrate``; ``estimate_session(calibration=...)``, or the one the session's
+manifest records, ``rig capture --calibration``) the estimators use what it measured instead of the design
+values, section by section (a missing section falls back to the design value, and ``inputs.calibration.used``
+says which): frames black-corrected and linearized (``radiometry``), then resampled to the ideal pinhole
+(``intrinsics``); the calibrated camera (``intrinsics`` + ``rig_frame`` pose); the LED rig (``rig_frame``
+positions, ``led_directions``, ``gains``); the albedo scale (``radiometry``); the key light's gain (``gains``);
+and the seed's D = k R_d / |n_z| (``seed_k``), reported beside the grounded gradient estimate.
 """
 from __future__ import annotations
 
+import hashlib
+import os
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -24,21 +34,169 @@ def _radiance_per_value(cam: dict[str, Any], exposure_s: float) -> float:
     return (cam["white_level_dn"] - cam["black_level_dn"]) / (cam["gain_dn_per_unit"] * exposure_s)
 
 
-class _Frames:
-    """Loads each session frame once, ambient-subtracted, in radiance units, with a saturation mask."""
+def _sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
 
-    def __init__(self, session: Session) -> None:
+
+class SessionCalibration:
+    """A calibration file as one session's estimators use it: which file (and how it was chosen), what it
+    replaces, and the provenance each estimate records. Build with :func:`resolve_calibration`."""
+
+    def __init__(self, cal: Any, source: str, sha256: str, manifest: dict[str, Any]) -> None:
+        self.cal, self.source, self.sha256 = cal, source, sha256
+        self.file = str(cal.path)
+        self.recorded = manifest.get("calibration")
+        cam = manifest["geometry"]["camera"]
+        self.design_camera = camera_from_dict(cam)
+        self._check(manifest)
+
+    def _check(self, manifest: dict[str, Any]) -> None:
+        from .calibration.store import CalibrationError
+
+        rig_name = manifest.get("config", {}).get("name")
+        if rig_name is not None and self.cal.doc.get("rig") != rig_name:
+            raise CalibrationError(self.file, "rig", f"the session's rig ({rig_name!r}, manifest config.name)",
+                                   self.cal.doc.get("rig"))
+        if self.cal.has("intrinsics"):
+            r = self.cal.result("intrinsics")
+            want = (self.design_camera.width_px, self.design_camera.height_px)
+            got = (int(r["width_px"]), int(r["height_px"]))
+            if got != want:
+                raise CalibrationError(self.file, "steps.intrinsics.result.width_px/height_px",
+                                       f"{want[0]} x {want[1]} px (the session's camera)", f"{got[0]} x {got[1]} px")
+
+    def has(self, section: str) -> bool:
+        return self.cal.has(section)
+
+    def revision(self, section: str) -> int:
+        return int(self.cal.section(section)["revision"])
+
+    def _used(self, section: str, what: str) -> str:
+        if self.has(section):
+            return f"calibrated ({section} revision {self.revision(section)})"
+        return f"design values ({what}; the calibration has no {section} section)"
+
+    # -- frames ---------------------------------------------------------------------------------------------
+    def linearize(self, rgb: np.ndarray) -> np.ndarray:
+        """``load_linear`` values -> black-corrected, linear values (unchanged without a radiometry section)."""
+        return self.cal.linearizer()(rgb) if self.has("radiometry") else rgb
+
+    def undistort(self, img: np.ndarray) -> np.ndarray:
+        """A frame-shaped array resampled to the ideal pinhole of :meth:`camera` (unchanged without intrinsics)."""
+        return self.cal.undistort(img) if self.has("intrinsics") else img
+
+    # -- geometry -------------------------------------------------------------------------------------------
+    def camera(self) -> Any:
+        """The calibrated pinhole (intrinsics + rig-frame pose; design values for a missing section)."""
+        from .calibration.common import Intrinsics
+
+        d = self.design_camera
+        intr = self.cal.intrinsics() if self.has("intrinsics") else Intrinsics.from_pinhole(d)
+        if self.has("rig_frame"):
+            r = self.cal.result("rig_frame")["camera"]
+            R, C = np.asarray(r["rotation"], float), np.asarray(r["center_mm"], float)
+        else:
+            R, C = d.R, d.C
+        return intr.pinhole(R, C)
+
+    def led_gain(self, led: int) -> tuple[np.ndarray, str]:
+        """(gain (3,) of LED ``led``: true radiant intensity / design intensity, how it was obtained)."""
+        if self.has("gains"):
+            r = self.cal.result("gains")
+            idx = [int(i) for i in r["led_indices"]]
+            if led in idx:
+                return (np.asarray(r["gains"], float)[idx.index(led)],
+                        f"calibrated gain of LED {led} (gains revision {self.revision('gains')})")
+            return np.ones(3), (f"design intensity: the gains step (revision {self.revision('gains')}) did not "
+                                f"measure LED {led} (add it to [calibration.diffuse_sphere] leds)")
+        return np.ones(3), "design intensity (the calibration has no gains section)"
+
+    # -- provenance -----------------------------------------------------------------------------------------
+    def provenance(self, used: dict[str, str]) -> dict[str, Any]:
+        """``inputs.calibration`` of an estimate: ``cal.provenance()`` (file, revision, sections) plus the
+        file's SHA-256, how it was chosen (``source``) and what this estimator took from it (``used``)."""
+        out = {**self.cal.provenance(), "sha256": self.sha256, "source": self.source, "used": used}
+        if self.source == "given" and isinstance(self.recorded, dict) and self.recorded.get("sha256") != self.sha256:
+            out["manifest_calibration"] = self.recorded     # the session was captured with another file
+        return out
+
+    def radiometry_note(self, what: str) -> str:
+        """``inputs.radiometry`` of an estimate that takes ``what`` from the radiometry section."""
+        if self.has("radiometry"):
+            return (f"calibrated: {self.file} revision {self.cal.doc['revision']} ({what} from radiometry revision "
+                    f"{self.revision('radiometry')}; radiance in the camera config's design response, in which "
+                    "the LED gains are expressed)")
+        return (f"design values of the camera config ({self.file} revision {self.cal.doc['revision']} has no "
+                "radiometry section)")
+
+    def used_frames_camera(self) -> dict[str, str]:
+        """``inputs.calibration.used`` entries for the frames and the camera."""
+        return {"camera": ("intrinsics " + self._used("intrinsics", "config [camera]") + "; pose "
+                           + self._used("rig_frame", "config [camera] position_mm, look_at_mm")),
+                "frames": ("black level and linearity " + self._used("radiometry", "none") + "; undistorted "
+                           + self._used("intrinsics", "no distortion"))}
+
+
+def resolve_calibration(session: Session, calibration: Any = None) -> SessionCalibration | None:
+    """The calibration a session's estimates use: ``calibration`` (a path or a loaded
+    ``rig.calibration.store.Calibration``) if given; else the file the manifest records (``rig capture
+    --calibration``), which must still have the recorded SHA-256; else None (design values).
+    ``calibration=False`` forces the design values even when the manifest records a file."""
+    from .calibration.store import Calibration, load_calibration
+
+    if calibration is False:
+        return None
+    manifest = session.manifest
+    mpath = session.root / "manifest.json"
+    if calibration is not None:
+        cal = calibration if isinstance(calibration, Calibration) else load_calibration(calibration)
+        return SessionCalibration(cal, "given", _sha256(Path(cal.path)), manifest)
+    rec = manifest.get("calibration")
+    if rec is None:
+        return None
+    if not isinstance(rec, dict) or not isinstance(rec.get("file"), str) or not isinstance(rec.get("sha256"), str):
+        raise SessionError(f"{mpath}: field 'calibration': expected an object with 'file' and 'sha256' strings, "
+                           f"got {rec!r}")
+    path = Path(rec["file"])
+    if not path.is_file():
+        raise SessionError(f"{mpath}: field 'calibration.file': the calibration file {path} the session was "
+                           "captured with is missing; give --calibration FILE (or restore it)")
+    now = _sha256(path)
+    if now != rec["sha256"]:
+        raise SessionError(f"{path}: the calibration file changed since the session was captured (manifest "
+                           f"{mpath} field 'calibration.sha256': recorded sha256 {rec['sha256']}, file now has "
+                           f"sha256 {now}); give --calibration {path} to use it as it is now")
+    return SessionCalibration(load_calibration(path), "manifest", now, manifest)
+
+
+class _Frames:
+    """Loads each session frame once, ambient-subtracted, in radiance units, with a saturation mask.
+
+    With a calibration (``cal``), frames are black-corrected and linearized, then undistorted to the
+    calibrated pinhole; the saturation mask is taken on the raw values and undistorted with them (a pixel
+    touched by a saturated one is saturated), the variance comes from the sensor's noise model of the raw
+    values (the linearization's slope, within a few percent of 1, is neglected)."""
+
+    def __init__(self, session: Session, cal: SessionCalibration | None = None) -> None:
         self.session = session
+        self.cal = cal
         self.cam = session.manifest["config"]["camera"]
         self._cache: dict[tuple[str, str], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
 
     def has(self, pattern: str, pol: str = "cross") -> bool:
         return any(r.pattern == pattern and r.polarization == pol for r in self.session.frames())
 
-    def raw(self, pattern: str, pol: str = "cross") -> tuple[np.ndarray, float]:
+    def _load(self, pattern: str, pol: str = "cross") -> tuple[np.ndarray, float]:
         rec = self.session.frame(pattern, pol)
         rgb, _ = load_linear(self.session.root / rec.file)
         return rgb.astype(np.float64), rec.exposure_s
+
+    def raw(self, pattern: str, pol: str = "cross") -> tuple[np.ndarray, float]:
+        """(frame, exposure_s): linear values (white = 1); calibrated: linearized and undistorted."""
+        rgb, exp = self._load(pattern, pol)
+        if self.cal is not None:
+            rgb = self.cal.undistort(self.cal.linearize(rgb))
+        return rgb, exp
 
     def _variance(self, rgb: np.ndarray) -> np.ndarray:
         """Poisson-Gaussian variance of linear values (white = 1) from the sensor's noise model.
@@ -54,13 +212,25 @@ class _Frames:
         """(radiance, its variance, saturated mask), each (H, W, 3), of the ambient-subtracted frame."""
         key = (pattern, pol)
         if key not in self._cache:
-            rgb, exp = self.raw(pattern, pol)
-            saturated = rgb >= SATURATION
-            var = self._variance(rgb)
-            if self.has("ambient", pol):
-                amb, amb_exp = self.raw("ambient", pol)
-                rgb = rgb - amb * (exp / amb_exp)
-                var = var + self._variance(amb) * (exp / amb_exp) ** 2
+            if self.cal is None:
+                rgb, exp = self.raw(pattern, pol)
+                saturated = rgb >= SATURATION
+                var = self._variance(rgb)
+                if self.has("ambient", pol):
+                    amb, amb_exp = self.raw("ambient", pol)
+                    rgb = rgb - amb * (exp / amb_exp)
+                    var = var + self._variance(amb) * (exp / amb_exp) ** 2
+            else:
+                rgb, exp = self._load(pattern, pol)
+                saturated = rgb >= SATURATION
+                var = self._variance(rgb)
+                rgb = self.cal.linearize(rgb)
+                if self.has("ambient", pol):
+                    amb, amb_exp = self._load("ambient", pol)
+                    var = var + self._variance(amb) * (exp / amb_exp) ** 2
+                    rgb = rgb - self.cal.linearize(amb) * (exp / amb_exp)
+                rgb, var = self.cal.undistort(rgb), self.cal.undistort(var)
+                saturated = self.cal.undistort(saturated.astype(np.float64)) > 0
             k = _radiance_per_value(self.cam, exp)
             self._cache[key] = (rgb * k, var * k * k, saturated)
         return self._cache[key]
@@ -148,21 +318,40 @@ def sample_at_points(img: np.ndarray, var: np.ndarray, valid: np.ndarray, camera
     return obs, sigma
 
 
-def run_single_image(frames: _Frames, manifest: dict[str, Any], surveys: dict[str, Any]) -> dict[str, Any]:
-    """Mukaigawa et al.'s single-image method on the key-light frame (estimation.single_image)."""
+def run_single_image(frames: _Frames, manifest: dict[str, Any], surveys: dict[str, Any], *,
+                     method: str | None = None) -> dict[str, Any]:
+    """Mukaigawa et al.'s single-image method on the key-light frame (estimation.single_image).
+
+    ``method`` overrides ``[estimation] single_image_method`` (the report asks for ``"tikhonov"`` to get the
+    binned profile R'(d) as data points). ``profile`` in the result holds the bins and values per channel
+    (None for channels not requested)."""
     import trimesh
 
     from estimation.single_image import PointLights, estimate_single_image, patches_from_mesh
 
     t0 = time.perf_counter()
     cfg = manifest["config"]
-    camera = camera_from_dict(manifest["geometry"]["camera"])
+    cal = frames.cal
+    camera = camera_from_dict(manifest["geometry"]["camera"]) if cal is None else cal.camera()
     center = _object_center(manifest, surveys)
-    if "key_led" not in surveys:
+    key_led = manifest["geometry"].get("key_led")
+    used: dict[str, str] = {}
+    if "key_led" in surveys:
+        light_pos = np.asarray(surveys["key_led"]["xyz_mm"], float)
+        used["light_position"] = "session survey of 'key_led'"
+    elif cal is not None and cal.has("rig_frame") and key_led is not None:
+        light_pos = cal.cal.led_positions_mm()[int(key_led)]
+        used["light_position"] = (f"calibrated position of LED {key_led} (rig_frame revision "
+                                  f"{cal.revision('rig_frame')}; no survey of 'key_led' in the session)")
+    else:
         raise SessionError(f"{manifest['name']}: no survey of the key light ('key_led') in the journal")
-    light_pos = np.asarray(surveys["key_led"]["xyz_mm"], float)
     peak = cfg["sphere"]["pattern_peak"]
     intensity = np.asarray(cfg["sphere"]["led_intensity"], float) * round(peak * 65535) / 65535
+    if cal is not None:
+        gain, used["light_intensity"] = (cal.led_gain(int(key_led)) if key_led is not None else
+                                         (np.ones(3), "design intensity (the manifest names no key LED)"))
+        intensity = intensity * gain
+        used.update(cal.used_frames_camera())
     mesh = trimesh.creation.icosphere(subdivisions=cfg["estimation"]["single_image_subdivisions"],
                                       radius=cfg["object"]["radius_mm"])
     mesh.apply_translation(center)
@@ -176,7 +365,8 @@ def run_single_image(frames: _Frames, manifest: dict[str, Any], surveys: dict[st
     eta = float(cfg["estimation"]["eta"])
     ch = requested_channels(manifest)
     res = estimate_single_image(obs[:, ch], patches, PointLights(light_pos[None, :], intensity[None, ch]), eta,
-                                method=cfg["estimation"]["single_image_method"], noise_sigma=sigma[:, ch])
+                                method=method or cfg["estimation"]["single_image_method"],
+                                noise_sigma=sigma[:, ch])
     seconds = time.perf_counter() - t0
     out: dict[str, Any] = {"estimator": "single-image", "success": bool(res), "message": res.message,
                            "method": res.method, "model": res.model, "eta": eta, "seconds": seconds,
@@ -184,6 +374,10 @@ def run_single_image(frames: _Frames, manifest: dict[str, Any], surveys: dict[st
                                       "object_center_mm": center.tolist(), "patches": len(mesh.faces),
                                       "observed_patches": int(np.isfinite(obs[:, 0]).sum()),
                                       "radiometry": "design values of the camera config (uncalibrated)"}}
+    if cal is not None:
+        out["inputs"].update(radiometry=cal.radiometry_note("black level and linearity"),
+                             light_intensity=intensity.tolist(),
+                             calibration=cal.provenance(used))
     out["channels"] = ["RGB"[i] for i in ch]
     if res:
         out.update({key: _expand_channels(getattr(res, key), ch) for key in (
@@ -192,6 +386,9 @@ def run_single_image(frames: _Frames, manifest: dict[str, Any], surveys: dict[st
         out.update({
             "sigma_a_identifiable": _expand_channels(list(res.sigma_a_identifiable_per_channel), ch),
             "identifiability_reason": res.identifiability_reason,
+            "profile": None if res.profile_bins_mm is None else {
+                "bins_mm": np.asarray(res.profile_bins_mm).tolist(),
+                "values": [_expand_channels(row, ch) for row in np.asarray(res.profile_values)]},
             "diagnostics": {"condition_number": res.diagnostics.condition_number,
                             "relative_residual_rms": res.diagnostics.relative_residual_rms,
                             "notes": list(res.diagnostics.notes)}})
@@ -210,16 +407,21 @@ def run_gradients(frames: _Frames, manifest: dict[str, Any], surveys: dict[str, 
     t0 = time.perf_counter()
     cfg = manifest["config"]
     geo = manifest["geometry"]
-    camera = camera_from_dict(geo["camera"])
+    cal = frames.cal
+    camera = camera_from_dict(geo["camera"]) if cal is None else cal.camera()
     center = _object_center(manifest, surveys)
     radius = float(cfg["object"]["radius_mm"])
     eta = float(cfg["estimation"]["eta"])
-    dirs = np.asarray(geo["led_directions"], float)
+    dirs = np.asarray(geo["led_directions"], float)     # the patterns were computed from the design layout
     peak_q = round(cfg["sphere"]["pattern_peak"] * 65535) / 65535
     names = [p for p in ("full", "x", "y", "z", "x_c", "y_c", "z_c") if frames.has(p)]
     displayed = {p: np.round(pattern_values(p, dirs) * peak_q * 65535) / 65535 for p in names}
     intensity = np.broadcast_to(np.asarray(cfg["sphere"]["led_intensity"], float), dirs.shape)
-    leds = LedRig.from_positions(geo["led_positions_mm"], intensity, patterns=displayed)
+    if cal is None:
+        leds = LedRig.from_positions(geo["led_positions_mm"], intensity, patterns=displayed)
+    else:
+        leds = cal.cal.led_rig(geo["led_positions_mm"], np.asarray(cfg["sphere"]["led_intensity"], float),
+                               patterns=displayed)
     raw = {}
     exposures = set()
     for p in ["ambient", *names]:
@@ -229,8 +431,27 @@ def run_gradients(frames: _Frames, manifest: dict[str, Any], surveys: dict[str, 
     if len(exposures) != 1:
         raise SessionError(f"{manifest['name']}: gradient frames must share one exposure, got {sorted(exposures)}")
     exposure = exposures.pop()
-    value_per_radiance = 1.0 / _radiance_per_value(frames.cam, exposure)
-    scale = albedo_scale_from_radiometry(np.full(3, value_per_radiance), leds, eta=eta)
+    used: dict[str, str] = {}
+    if cal is not None and cal.has("radiometry"):
+        scale = _calibrated_albedo_scale(cal, exposure, peak_q)
+        used["albedo_scale"] = (f"calibrated (radiometry revision {cal.revision('radiometry')}) at "
+                                f"{exposure:g} s")
+    else:
+        value_per_radiance = 1.0 / _radiance_per_value(frames.cam, exposure)
+        scale = albedo_scale_from_radiometry(np.full(3, value_per_radiance), leds, eta=eta)
+        if cal is not None:
+            used["albedo_scale"] = "design camera response (the calibration has no radiometry section)"
+    if cal is not None:
+        used.update(cal.used_frames_camera())
+        n_dir = len(cal.cal.result("led_directions")["led_indices"]) if cal.has("led_directions") else 0
+        n_gain = len(cal.cal.result("gains")["led_indices"]) if cal.has("gains") else 0
+        used.update(led_positions=cal._used("rig_frame", "geodesic layout of [sphere]"),
+                    led_directions=(f"mirror ball for {n_dir} LEDs (led_directions revision "
+                                    f"{cal.revision('led_directions')}), from the positions elsewhere" if n_dir else
+                                    "from the LED positions (the calibration has no led_directions section)"),
+                    led_gains=(f"calibrated for {n_gain} LEDs (gains revision {cal.revision('gains')}), design "
+                               "led_intensity elsewhere" if n_gain else
+                               "design led_intensity (the calibration has no gains section)"))
     normals, view, hit = sphere_geometry(camera, center, radius)
     maps = compute_maps(raw, albedo_scale=scale, leds=leds, eta=eta, view_dirs=view,
                         geometry_normals=np.where(hit[..., None], normals, 0.0), object_mask=hit,
@@ -238,6 +459,10 @@ def run_gradients(frames: _Frames, manifest: dict[str, Any], surveys: dict[str, 
     t_maps = time.perf_counter() - t0
     est = estimate_sphere(maps, radius_mm=radius, true_normals=normals)
     summ = est.summary
+    seed = None
+    if cal is not None and cal.has("seed_k"):
+        seed = _seed_beside(maps, est, normals, hit, cal, requested_channels(manifest))
+        used["seed_k"] = f"calibrated (seed_k revision {cal.revision('seed_k')})"
     seconds = time.perf_counter() - t0
     out: dict[str, Any] = {
         "estimator": "gradients", "success": any(st != "unknown" for st in summ.status),
@@ -257,6 +482,55 @@ def run_gradients(frames: _Frames, manifest: dict[str, Any], surveys: dict[str, 
             vals, intervals = np.asarray(summ.params[name].value), np.asarray(summ.params[name].interval)
             out[key] = _expand_channels(vals[ch], ch)
             out[key + "_interval"] = _expand_channels(intervals[ch], ch)
+    if cal is not None:
+        out["inputs"].update(radiometry=cal.radiometry_note("black level, linearity and albedo scale"),
+                             calibration=cal.provenance(used))
+    if seed is not None:
+        out["seed"] = seed
+    return out
+
+
+def _calibrated_albedo_scale(cal: SessionCalibration, exposure_s: float, drive: float) -> np.ndarray:
+    """The calibration's albedo scale for frames of ``exposure_s`` whose full pattern shows ``drive``: the
+    radiometry step's reference frame was taken at ``pattern_drive`` (when recorded), and the albedo scale is
+    inversely proportional to the full pattern's irradiance."""
+    scale = np.asarray(cal.cal.albedo_scale(exposure_s), float)
+    cal_drive = cal.cal.result("radiometry").get("pattern_drive")
+    if cal_drive is not None:
+        scale = scale * float(cal_drive) / float(drive)
+    return scale
+
+
+def _seed_beside(maps: Any, est: Any, normals: np.ndarray, hit: np.ndarray, cal: SessionCalibration,
+                 ch: list[int]) -> dict[str, Any]:
+    """The seed's D = k R_d / |n_z| (``estimation.diffusion.diffusion_seed`` with the calibrated k) over the
+    grounded estimate's region, and how it compares with the grounded D (``compare_estimates``)."""
+    from scipy.ndimage import binary_erosion
+
+    from estimation.diffusion import compare_estimates, diffusion_seed
+
+    region = binary_erosion(hit, iterations=2)       # as estimate_sphere's default region
+    k = cal.cal.k_mm()
+    sd = diffusion_seed(maps, k, cal.cal.provenance(), true_normals=normals)
+    D = np.full(3, np.nan)
+    n = np.zeros(3, int)
+    for c in range(3):
+        m = region & ~sd.unknown[..., c]
+        n[c] = int(m.sum())
+        if n[c]:
+            D[c] = float(np.median(sd.D_mm[..., c][m]))
+    out: dict[str, Any] = {"estimator": "seed D = k R_d / |n_z| (Zhu et al.; estimation.diffusion.diffusion_seed)",
+                           "k_mm": _expand_channels(k[ch], ch), "D_mm": _expand_channels(D[ch], ch),
+                           "n_pixels": _expand_channels(n[ch], ch),
+                           "k_reference": cal.cal.result("seed_k").get("reference")}
+    try:
+        cmp = compare_estimates(sd, est.maps, region=region)
+    except (ValueError, AttributeError, TypeError) as exc:     # the grounded maps lack what the comparison needs
+        out["comparison"] = f"not available ({type(exc).__name__}: {exc})"
+    else:
+        out["comparison"] = {"median_ratio_to_grounded": _expand_channels(np.asarray(cmp.median_ratio)[ch], ch),
+                             "fraction_disagree": _expand_channels(np.asarray(cmp.fraction_disagree)[ch], ch),
+                             "rel_tol": cmp.rel_tol}
     return out
 
 
@@ -301,14 +575,23 @@ def _derived_truth(key: str, truth: dict[str, Any]) -> list[float] | None:
     return None
 
 
-def estimate_session(root: str | Path, *, log: Callable[[str], None] | None = None) -> dict[str, Any]:
-    """Run every estimator the session has frames for; write estimates/*.json; return table rows."""
+def estimate_session(root: str | Path, *, calibration: str | os.PathLike[str] | Any = None,
+                     log: Callable[[str], None] | None = None) -> dict[str, Any]:
+    """Run every estimator the session has frames for; write estimates/*.json; return table rows.
+
+    ``calibration``: a calibration file (``rig calibrate``) to use; by default the one the manifest records
+    (``rig capture --calibration``; its SHA-256 must match), else the design values; ``False``: the design
+    values regardless (:func:`resolve_calibration`)."""
     say = log or (lambda m: None)
     session = Session.open(root)
     manifest = session.manifest
     truth = manifest.get("truth")
     surveys = session.surveys()
-    frames = _Frames(session)
+    cal = resolve_calibration(session, calibration)
+    if cal is not None:
+        say(f"calibration {cal.file} (revision {cal.cal.doc['revision']}, {cal.source}): "
+            + ", ".join(sorted(cal.cal.doc["steps"])))
+    frames = _Frames(session, cal)
     results: dict[str, Any] = {}
     rows: list[dict[str, Any]] = []
     notes: list[str] = []
@@ -327,4 +610,10 @@ def estimate_session(root: str | Path, *, log: Callable[[str], None] | None = No
         if est.get("success") and not all(v for v in est["sigma_a_identifiable"] if v is not None):
             notes.append("single-image: sigma_a not identifiable in some channels; "
                          + est.get("identifiability_reason", ""))
+        if cal is not None and "light_intensity" in est.get("inputs", {}).get("calibration", {}).get("used", {}):
+            li = est["inputs"]["calibration"]["used"]["light_intensity"]
+            if li.startswith("design"):
+                notes.append(f"single-image: key light at {li}")
+    if cal is not None:
+        notes.append(f"calibrated with {cal.file} revision {cal.cal.doc['revision']} ({cal.source})")
     return {"rows": rows, "notes": notes, "estimates": results}

@@ -73,41 +73,21 @@ def gradient_maps(session: Session):
 
 # ---------------------------------------------------------------------------------------------- profile
 def single_image_profile(session: Session) -> dict[str, Any] | None:
-    """Binned R'(d) data points from the key-light frame (the single-image method, Tikhonov variant).
+    """Data points for the R(d) plot: the binned profile R'(d) of the single-image method's Tikhonov variant
+    on the session's key-light frame, through the same inputs (and calibration) as its estimate
+    (rig.estimate.run_single_image). None without a key-light frame or its surveys."""
+    from .estimate import _Frames, resolve_calibration, run_single_image
 
-    Assembled as ``rig.estimate.run_single_image`` does (same frame sampling, patches and light), then
-    ``estimate_single_image(method="tikhonov")``. None without a key-light frame or its surveys."""
-    import trimesh
-
-    from estimation.single_image import PointLights, estimate_single_image, patches_from_mesh
-
-    from .estimate import _Frames, _object_center, pixel_faces, sample_at_points
-    from .geometry import camera_from_dict
-
-    m = session.manifest
     surveys = session.surveys()
-    frames = _Frames(session)
+    frames = _Frames(session, resolve_calibration(session))
     if not frames.has("key") or "key_led" not in surveys:
         return None
-    cfg = m["config"]
-    camera = camera_from_dict(m["geometry"]["camera"])
-    center = _object_center(m, surveys)
-    light = np.asarray(surveys["key_led"]["xyz_mm"], float)
-    intensity = np.asarray(cfg["sphere"]["led_intensity"], float) * round(cfg["sphere"]["pattern_peak"] * 65535) / 65535
-    mesh = trimesh.creation.icosphere(subdivisions=cfg["estimation"]["single_image_subdivisions"],
-                                      radius=cfg["object"]["radius_mm"])
-    mesh.apply_translation(center)
-    patches = patches_from_mesh(mesh, camera)
-    img, var, sat = frames.radiance("key")
-    faces = pixel_faces(mesh, camera)
-    obs, sigma = sample_at_points(img, var, (faces >= 0)[..., None] & ~sat, camera, patches.centers_mm)
-    obs[~patches.visible] = np.nan
-    res = estimate_single_image(obs * 2.0, patches, PointLights(light[None, :], intensity[None, :]),
-                                float(cfg["estimation"]["eta"]), method="tikhonov", noise_sigma=sigma * 2.0)
-    if not res or res.profile_bins_mm is None:
+    est = run_single_image(frames, session.manifest, surveys, method="tikhonov")
+    prof = est.get("profile") if est.get("success") else None
+    if not prof:
         return None
-    return {"bins_mm": np.asarray(res.profile_bins_mm).tolist(), "values": np.asarray(res.profile_values).tolist(),
-            "method": "tikhonov"}
+    values = np.array([[np.nan if v is None else v for v in row] for row in prof["values"]], float)
+    return {"bins_mm": prof["bins_mm"], "values": values.tolist(), "method": "tikhonov"}
 
 
 def _profile_png(estimates: dict[str, Any], truth: dict[str, Any] | None, points: dict[str, Any] | None

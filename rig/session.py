@@ -1,7 +1,8 @@
 """The on-disk session (docs/session-format.md): one folder per session, written so nothing is lost.
 
 - ``manifest.json``: format version, name, creation time, software version, config snapshot, device
-  identities, the plan, and (simulated sessions only) the scene's ground truth. Written atomically once.
+  identities, the plan, (simulated sessions only) the scene's ground truth, and (``rig capture --calibration``)
+  the calibration file with its revision and SHA-256. Written atomically once.
 - ``events.jsonl``: append-only journal, one JSON object per line, fsynced per event: ``start``, ``frame``,
   ``survey``, ``stop`` and the runner's ``retry``, ``hold``, ``release``, ``lost``, ``reconnected``, ``pause``,
   ``resume``, ``restart``, ``recovered``. A line cut short by a crash is ignored on read.
@@ -119,7 +120,10 @@ class Session:
                devices: dict[str, Any], plan: list[dict[str, Any]],
                geometry: dict[str, Any] | None = None,
                truth: dict[str, Any] | None = None,
-               request: dict[str, Any] | None = None) -> "Session":
+               request: dict[str, Any] | None = None,
+               calibration: dict[str, Any] | None = None) -> "Session":
+        """``calibration``: the calibration file the session is captured with (``file``, ``rig``, ``revision``,
+        ``sha256``; ``rig.capture.calibration_record``), written to the manifest only when given."""
         validate_session_name(name)
         parent = Path(parent)
         parent.mkdir(parents=True, exist_ok=True)
@@ -135,6 +139,8 @@ class Session:
                     "created": now_iso(), "software_version": software_version(),
                     "config": config, "devices": devices, "request": request, "plan": plan,
                     "geometry": geometry, "truth": truth}
+        if calibration is not None:
+            manifest["calibration"] = calibration
         atomic_write_bytes(root / "manifest.json",
                            json.dumps(manifest, indent=2, default=_json_default).encode())
         s = cls(root)

@@ -126,6 +126,7 @@ def compute(ctx: StepContext, cap: Captured) -> StepOutput:
     result = {**lin, "read_noise_dn": read_noise.tolist(), "response_per_s": a.tolist(),
               "saturation_exposure_s": min(sat) if sat else None,
               "albedo_scale": scale.tolist(), "albedo_scale_exposure_s": t_g, "eta": eta,
+              "pattern_drive": displayed_drive(cfg, ctx.pattern_peak),    # the full pattern's drive (0..1)
               "reference": {"reflectance": list(r.reflectance), "normal": list(r.tile_normal),
                             "center_mm": list(r.tile_center_mm)}}
     residuals = {"linearity_max_deviation": dev.tolist(), "series_exposures_s": ts, "saturated_exposures_s": sat,
