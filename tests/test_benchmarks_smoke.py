@@ -54,3 +54,11 @@ def test_gradients_benchmark_quick_prints_throughput_and_memory(tmp_path):
     data = json.loads(out.read_text())
     assert data["pipeline_mps"] > 0 and min(data["floor_read_mps"]) > 0
     assert data["runs"]["pipeline"]["status"] == ["ok", "ok", "ok"]
+
+
+def test_monte_carlo_benchmark_quick_prints_figures():
+    proc = _run("monte_carlo.py", "--json")
+    assert proc.returncode == 0, proc.stderr
+    data = json.loads(proc.stdout)
+    for key in ("point_light", "gradient_x"):
+        assert data[key]["seconds"] > 0 and 0 < data[key]["rel_stderr_median"] < 1
