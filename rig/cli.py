@@ -25,6 +25,8 @@ def _add_request(p: argparse.ArgumentParser) -> None:
     p.add_argument("--channels", default="RGB", help="colour channels to capture and process (e.g. RGB, G)")
     p.add_argument("--complements", action=argparse.BooleanOptionalAction, default=None,
                    help="gradients as x, y, z + complements (default: [estimation] complements)")
+    p.add_argument("--roi", type=int, nargs=4, metavar=("X0", "Y0", "X1", "Y1"), default=None,
+                   help="process only this pixel region of the frames (half-open; default: whole frame)")
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -86,10 +88,8 @@ def _cmd_sim(args: argparse.Namespace) -> int:
 
 def _request(args: argparse.Namespace):
     from .plan import CaptureRequest
-    try:
-        return CaptureRequest(tuple(args.estimate), tuple(args.channels.upper()), args.complements)
-    except ValueError as exc:
-        raise SystemExit(f"rig {args.command}: error: {exc}") from None
+    return CaptureRequest(tuple(args.estimate), tuple(args.channels.upper()), args.complements,   # RequestError:
+                          None if args.roi is None else tuple(args.roi))                        # exit 2
 
 
 def _cmd_plan(args: argparse.Namespace) -> int:

@@ -246,6 +246,20 @@ def requested_channels(manifest: dict[str, Any]) -> list[int]:
     return [i for i, c in enumerate("RGB") if c in names]
 
 
+def roi_mask(manifest: dict[str, Any], shape: tuple[int, int]) -> np.ndarray:
+    """(H, W) bool: the pixels the session's request asks to process (``roi_px``; all without one)."""
+    mask = np.ones(shape, bool)
+    roi = (manifest.get("request") or {}).get("roi_px")
+    if roi is not None:
+        x0, y0, x1, y1 = (int(v) for v in roi)
+        if x1 > shape[1] or y1 > shape[0]:
+            raise SessionError(f"{manifest.get('name', 'session')}: request roi_px {list(roi)} reaches outside "
+                               f"the {shape[1]}x{shape[0]} frames")
+        mask[:] = False
+        mask[y0:y1, x0:x1] = True
+    return mask
+
+
 def _expand_channels(values: Any, idx: list[int]) -> list[Any]:
     """Per-channel values of the requested channels -> a 3-list with None for the others."""
     out: list[Any] = [None, None, None]
@@ -358,7 +372,8 @@ def run_single_image(frames: _Frames, manifest: dict[str, Any], surveys: dict[st
     patches = patches_from_mesh(mesh, camera)
     img, var, sat = frames.radiance("key")
     faces = pixel_faces(mesh, camera)
-    obs, sigma = sample_at_points(img, var, (faces >= 0)[..., None] & ~sat, camera, patches.centers_mm)
+    valid = ((faces >= 0) & roi_mask(manifest, faces.shape))[..., None] & ~sat   # outside the region: unobserved
+    obs, sigma = sample_at_points(img, var, valid, camera, patches.centers_mm)
     obs[~patches.visible] = np.nan      # back faces project onto the image too: never observed
     obs *= 2.0     # cross-polarized: half the diffuse light
     sigma *= 2.0
@@ -453,6 +468,7 @@ def run_gradients(frames: _Frames, manifest: dict[str, Any], surveys: dict[str, 
                                "led_intensity elsewhere" if n_gain else
                                "design led_intensity (the calibration has no gains section)"))
     normals, view, hit = sphere_geometry(camera, center, radius)
+    hit = hit & roi_mask(manifest, hit.shape)       # pixels outside the requested region: not processed
     maps = compute_maps(raw, albedo_scale=scale, leds=leds, eta=eta, view_dirs=view,
                         geometry_normals=np.where(hit[..., None], normals, 0.0), object_mask=hit,
                         surface_center_mm=center, surface_radius_mm=radius)

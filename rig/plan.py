@@ -27,7 +27,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from drivers.errors import LimitError
+from drivers.errors import LimitError, RigError
 
 from .config import RigConfig
 from .patterns import FULL_SCALE, nearest_led, pattern_rgb16
@@ -51,26 +51,50 @@ SERIAL_BYTES_PER_S = 11520.0         # 115200 baud, 8N1
 UPLOAD_OVERHEAD_S = 0.01             # per UPLOAD_PATTERN frame round trip
 
 
+class RequestError(RigError, ValueError):
+    """A capture request that cannot be planned (unknown estimator or channel, a region off the frame)."""
+
+
 @dataclass(frozen=True)
 class CaptureRequest:
-    """What the user asks for. ``complements=None`` takes ``[estimation] complements`` from the config."""
+    """What the user asks for. ``complements=None`` takes ``[estimation] complements`` from the config.
+
+    ``roi_px``: the region of the image to process, ``(x0, y0, x1, y1)`` in pixels of the delivered frame
+    (half-open, column 0 / row 0 at the top left); None = the whole frame. Pixels outside it are not
+    processed (gradient maps are "unknown" there, the single-image method observes only patches whose
+    centres project inside it; they still act as light sources). The camera still records whole frames:
+    a RAW frame is read out whole, and keeping it whole keeps the session a faithful record."""
 
     estimate: tuple[str, ...] = DEFAULT_ESTIMATE
     channels: tuple[str, ...] = CHANNELS
     complements: bool | None = None
+    roi_px: tuple[int, int, int, int] | None = None
 
     def __post_init__(self) -> None:
         est = tuple(dict.fromkeys(self.estimate))
         if not est:
-            raise ValueError("request: nothing to estimate; expected one or more of " + ", ".join(ESTIMATORS))
+            raise RequestError("request: nothing to estimate; expected one or more of " + ", ".join(ESTIMATORS))
         for e in est:
             if e not in ESTIMATORS:
-                raise ValueError(f"unknown estimator {e!r}: expected one of {', '.join(ESTIMATORS)}")
+                raise RequestError(f"unknown estimator {e!r}: expected one of {', '.join(ESTIMATORS)}")
         ch = tuple(c.upper() for c in self.channels)
         if not ch or any(c not in CHANNELS for c in ch) or len(set(ch)) != len(ch):
-            raise ValueError(f"channels {''.join(self.channels)!r}: expected a non-empty subset of R, G, B")
+            raise RequestError(f"channels {''.join(self.channels)!r}: expected a non-empty subset of R, G, B")
         object.__setattr__(self, "estimate", est)
         object.__setattr__(self, "channels", tuple(c for c in CHANNELS if c in ch))
+        if self.roi_px is not None:
+            roi = tuple(self.roi_px)
+            if (len(roi) != 4 or not all(isinstance(v, int) and not isinstance(v, bool) for v in roi)
+                    or min(roi) < 0 or roi[2] <= roi[0] or roi[3] <= roi[1]):
+                raise RequestError(f"roi_px {self.roi_px!r}: expected four integers x0 y0 x1 y1 with "
+                                 "0 <= x0 < x1 and 0 <= y0 < y1 (pixels, half-open)")
+            object.__setattr__(self, "roi_px", roi)
+
+    def check_frame(self, width_px: int, height_px: int, file: str = "request") -> None:
+        """Raise ValueError if the region reaches outside a ``width_px`` x ``height_px`` frame."""
+        if self.roi_px is not None and (self.roi_px[2] > width_px or self.roi_px[3] > height_px):
+            raise RequestError(f"{file}: roi_px {list(self.roi_px)} reaches outside the {width_px}x{height_px} "
+                             "frame; expected x1 <= width and y1 <= height")
 
     def resolved(self, config: RigConfig) -> "CaptureRequest":
         if self.complements is not None:
@@ -79,11 +103,14 @@ class CaptureRequest:
 
     def to_dict(self) -> dict[str, Any]:
         return {"estimate": list(self.estimate), "channels": "".join(self.channels),
-                "complements": self.complements}
+                "complements": self.complements,
+                "roi_px": None if self.roi_px is None else list(self.roi_px)}
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> "CaptureRequest":
-        return cls(tuple(d["estimate"]), tuple(d["channels"]), d.get("complements"))
+        roi = d.get("roi_px")
+        return cls(tuple(d["estimate"]), tuple(d["channels"]), d.get("complements"),
+                   None if roi is None else tuple(int(v) for v in roi))
 
 
 @dataclass(frozen=True)
@@ -147,6 +174,7 @@ def build_plan(config: RigConfig, led_directions, *, estimate: Sequence[str] | N
         request = CaptureRequest(tuple(estimate) if estimate is not None else DEFAULT_ESTIMATE,
                                  tuple(channels) if channels is not None else CHANNELS, complements)
     req = request.resolved(config)
+    req.check_frame(config.camera.width_px, config.camera.height_px, "request")
     dirs = np.asarray(led_directions, float)
     est = set(req.estimate)
     sph, cam = config.sphere, config.camera
@@ -275,6 +303,10 @@ def omissions(config: RigConfig, request: CaptureRequest) -> list[str]:
     missing = [c for c in CHANNELS if c not in req.channels]
     if missing:
         out.append(f"channel(s) {', '.join(missing)} not requested: dark in every pattern, not processed")
+    if req.roi_px is not None:
+        x0, y0, x1, y1 = req.roi_px
+        out.append(f"pixels outside the region x {x0}..{x1 - 1}, y {y0}..{y1 - 1} not processed (frames are "
+                   "still recorded whole: a RAW frame is read out whole)")
     return out
 
 

@@ -138,7 +138,8 @@ def test_dry_run_text_names_frames_devices_budget_and_reasons():
 def test_rig_plan_json(capsys):
     assert main(["plan", "--estimate", "gradients", "specular", "--channels", "RG", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
-    assert out["request"] == {"estimate": ["gradients", "specular"], "channels": "RG", "complements": False}
+    assert out["request"] == {"estimate": ["gradients", "specular"], "channels": "RG", "complements": False,
+                              "roi_px": None}
     assert out["budget"]["frames"] == 10 and set(out["devices"]) == {"sphere", "trigger", "camera",
                                                                       "total_station"}
     assert all(s["reason"] for s in out["steps"])
