@@ -11,6 +11,10 @@ estimation.forward on a finer, rotated tessellation than the estimator's icosphe
    sky (gradient + sun) stands in. Verdict on the target: sigma_s' within 2 %, sigma_a within 25 % (or flagged
    non-identifiable with an interval containing the truth).
 2. One LED (point light ~1 m away) on Jensen 2001 materials, all three channels, ``direct``.
+2b. Models side by side on table-made data: the image of one LED on marble (RGB) synthesized with the Monte Carlo
+   table's forward model (``synthesize_table``: exact ring integrals of its C(r), exit factor F_t/(pi c)) on the
+   fine tessellation, fitted ("direct") with each profile model: parameters, errors against the truth, the
+   model_bias radiance ratio against the table at the fitted parameters, seconds.
 3. Cost against the patch count m (1k-100k patches of a Fibonacci sphere, same scene and E_t given to every
    solver): ``estimate_single_image`` ("direct", default options with intervals; and "pinv" at 0.35 mm) beside
    the literal dense implementation of the published method (benchmarks/_dense_reference.py: dense m_obs x m
@@ -49,8 +53,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _dense_reference import distance_matrix_bytes, literal_dense_pinv  # noqa: E402
 from estimation.camera import PinholeCamera  # noqa: E402
-from estimation.forward import diffuse_exitance, radiance_from_exitance  # noqa: E402
-from estimation.single_image import (EnvironmentMap, Patches, PointLights, estimate_single_image,  # noqa: E402
+from estimation.forward import (NEAR_FIELD_SPACINGS, diffuse_exitance, radiance_from_exitance,  # noqa: E402
+                                ring_radii)
+from estimation.mc_table import default_table, exit_radiance_factor  # noqa: E402
+from estimation.single_image import (MODELS_ALL, EnvironmentMap, Patches, PointLights,  # noqa: E402
+                                     estimate_single_image,
                                      patch_irradiance, patches_from_mesh, predict_radiance)
 
 CAMERA_MM = (0.0, -300.0, 0.0)
@@ -239,6 +246,56 @@ def section_led(args, est: Patches, fine: Patches, out: dict) -> None:
     print()
 
 
+def synthesize_table(est: Patches, fine: Patches, lights, ssp, sa, eta: float, chunk: int = 256) -> np.ndarray:
+    """Like :func:`synthesize` with the Monte Carlo table: near field (2 spacings) by exact equal-area ring
+    integrals of its C(r), far pairs point terms, radiance with the table's exit factor F_t/(pi c)."""
+    from scipy.spatial.distance import cdist
+
+    tab = default_table()
+    e = patch_irradiance(fine, lights, eta)
+    vis = est.visible_index
+    out = np.zeros((vis.size, e.shape[1]))
+    for s0 in range(0, vis.size, chunk):
+        d = cdist(est.centers_mm[vis[s0:s0 + chunk]], fine.centers_mm)
+        near = d < NEAR_FIELD_SPACINGS * fine.spacing_mm
+        rows, cols = np.nonzero(near)
+        order, r_in, r_out = ring_radii(rows, d[rows, cols], fine.areas_mm2[cols])
+        rows, cols = rows[order], cols[order]
+        for c in range(e.shape[1]):
+            g = tab.cumulative(r_out, ssp[c], sa[c], eta) - tab.cumulative(r_in, ssp[c], sa[c], eta)
+            out[s0:s0 + chunk, c] = np.bincount(rows, weights=g * e[cols, c], minlength=d.shape[0])
+            prof = np.where(near, 0.0, tab.profile(np.where(near, 1.0, d), ssp[c], sa[c], eta))
+            out[s0:s0 + chunk, c] += prof @ (e[:, c] * fine.areas_mm2)
+    return exit_radiance_factor(eta, est.cos_out[vis])[:, None] * out
+
+
+def section_models(args, est: Patches, fine: Patches, out: dict) -> None:
+    led = PointLights(LED_MM, np.full((1, 3), 1e6))
+    s, a = (np.array(v) for v in MATERIALS["marble"])
+    print("## 2b. Models side by side: one LED on marble (RGB), image made with the Monte Carlo table, direct fit\n")
+    print("radiance ratio: the model's predicted radiance over the table's at the fitted parameters (model_bias; "
+          "exit normalization included)\n")
+    print("| model | sigma_s' | err | sigma_a | err | radiance ratio | s |")
+    print("|---|---|---|---|---|---|---|")
+    obs = synthesize_table(est, fine, led, s, a, ETA)
+    rows = []
+    for model in MODELS_ALL:
+        r, sec = timed(lambda model=model: estimate_single_image(obs, est, led, ETA, model=model), args.repeats)
+        rw = row(f"models/{model}", s, a, r)
+        rw["model"] = model
+        if r:
+            rw["model_bias"] = r.extra["model_bias"]
+            rw["seconds"] = sec
+            print(f"| {model} | {fmt(r.sigma_s_prime_per_mm)} | {pct(rw['err_sigma_s_prime'])} | "
+                  f"{fmt(r.sigma_a_per_mm)} | {pct(rw['err_sigma_a'])} | "
+                  f"{fmt(r.extra['model_bias']['radiance_ratio'])} | {sec:.2f} |")
+        else:
+            print(f"| {model} | failed: {r.message} | | | | | {sec:.2f} |")
+        rows.append(rw)
+    out["models"] = rows
+    print()
+
+
 def section_cost(args, out: dict) -> None:
     sizes = [1000, 3000] if args.quick else [1000, 3000, 10_000, 30_000, 50_000, 100_000]
     if args.sizes:
@@ -411,7 +468,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="run the literal dense method only while its distance matrix fits (GB)")
     ap.add_argument("--repeats", type=int, default=None, help="timing repeats (default 2, --quick 1)")
     ap.add_argument("--sizes", type=int, nargs="+", help="patch counts of section 3")
-    ap.add_argument("--skip", nargs="+", default=[], choices=["table1", "led", "cost"], help="sections to skip")
+    ap.add_argument("--skip", nargs="+", default=[], choices=["table1", "led", "models", "cost"],
+                    help="sections to skip")
     args = ap.parse_args(argv)
     if args.repeats is None:
         args.repeats = 1 if args.quick else 2
@@ -435,6 +493,8 @@ def main(argv: list[str] | None = None) -> int:
         section_table1(args, est, fine, out)
     if "led" not in args.skip:
         section_led(args, est, fine, out)
+    if "models" not in args.skip:
+        section_models(args, est, fine, out)
     if "cost" not in args.skip:
         section_cost(args, out)
     out["environment"]["loadavg_end"] = list(os.getloadavg()) if hasattr(os, "getloadavg") else None

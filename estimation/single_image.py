@@ -35,6 +35,23 @@ the literal dense method needs 8 m_obs m bytes (6.3 GB at 50k). The published ``
 ill-conditioned (cond(W) ~1e4-1e5): it reacts to that 0.03 % far-field change by a few % in its parameters
 (+2.7 % in sigma_s' at 10k patches); ``far_field="exact"`` reproduces the dense textbook computation.
 
+Models (``model=``, :data:`MODELS_ALL`): the dipoles of :mod:`.dipole` and ``"mc-table"``, the packaged Monte Carlo
+table of the half-space profile (:mod:`.mc_table`, eta 1.0-1.8, checked up front). For the table every method uses
+its exact disk integral C(r) (``cumulative``) where the dipoles use theirs, its R_d / l_d and cutoff, and
+out-of-range albedos are evaluated at the table's edge (``out_of_range="clip"``: the sigma_a floor of 1e-7/mm lies
+below the table's 1 - alpha' = 1e-5, so the objective is flat there, which the intervals report as "sigma_a not
+identifiable"). The table's R diverges like 1/r at the source, so the binned methods do not point-sample it at
+d = 0: ``pinv``'s self term uses the mean over the own patch's disk, C(r_p)/(pi r_p^2) (r_p = sqrt(median area /
+pi)), and ``tikhonov``'s first node the value that gives its hat interval the exact disk integral.
+Exit radiance: the dipoles keep Jensen's (and the paper's) angular factor F_t(eta, w_o)/pi, l_j = pi L_o / F_t,
+unchanged. That factor integrates to c = 1 - 2 FM1_ext(eta) over the hemisphere, not 1; the table's R is true
+exitance, so for ``"mc-table"`` the estimator uses the normalized factor F_t/(pi c)
+(:func:`estimation.mc_table.exit_radiance_factor`, within ~5 % of the Monte Carlo exit distribution for
+cos_o >= 0.2): l_j = pi c L_o / F_t, and :func:`predict_radiance` renders with the same factor. ``extra`` records
+``exit_normalization`` (c; 1 for dipoles) and, for every model, ``model_bias`` (:func:`model_bias`): the
+model's R_d and profile (at 0.5, 1, 2, 5 transport mean free paths) against the Monte Carlo table at the fitted
+parameters, the radiance ratio including the exit normalization, and the table-equivalent parameters.
+
 Every method reports Jacobian confidence intervals and a profile-likelihood interval for sigma_a (which is
 one-sided near 0: science.md sec. 6), ``sigma_a_identifiable`` with the reason, and diagnostics. Failures
 return a falsy :class:`SingleImageResult` whose ``message`` says why; no returned number is NaN or inf.
@@ -53,13 +70,20 @@ from scipy import optimize
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
-from .dipole import (check_model, cumulative_disk, cutoff_radius_mm, dipole_coefficients,
+from .dipole import (MODELS, cumulative_disk, cutoff_radius_mm, dipole_coefficients,
                      profile_from_coefficients, reflectance_from_coefficients)
 from .forward import NEAR_FIELD_SPACINGS, irradiance_directional, irradiance_point_lights, ring_radii
-from .fresnel import fresnel_transmittance
+from .fresnel import fresnel_moment, fresnel_transmittance
+from .mc_table import MODEL_NAME as MC_MODEL
+from .mc_table import default_table
 
 __all__ = [
     "METHODS",
+    "MODELS_ALL",
+    "MC_MODEL",
+    "BIAS_RADII_MFP",
+    "check_model",
+    "model_bias",
     "Patches",
     "PointLights",
     "DirectionalLights",
@@ -79,6 +103,10 @@ __all__ = [
 
 Array = NDArray[np.float64]
 METHODS: tuple[str, ...] = ("direct", "tikhonov", "pinv")
+#: profile models accepted by the estimator: the dipoles of :mod:`.dipole` and the Monte Carlo table
+MODELS_ALL: tuple[str, ...] = tuple(MODELS) + (MC_MODEL,)
+#: radii (in transport mean free paths 1/sigma_t' of the fitted parameters) of the profile ratios in model_bias
+BIAS_RADII_MFP: tuple[float, ...] = (0.5, 1.0, 2.0, 5.0)
 
 _LOG_SSP_BOUNDS = (np.log(1e-3), np.log(1e3))
 _LOG_SA_MAX = np.log(50.0)
@@ -846,19 +874,142 @@ class _Problem:
         return np.einsum("nt,nt->t", r, r) + self.offset
 
 
+def check_model(model: str, eta: float | None = None) -> str:
+    """Return ``model`` if it is one of :data:`MODELS_ALL`, else raise ValueError listing them; for
+    ``"mc-table"`` also check that ``eta`` lies in the table's range (1.0-1.8)."""
+    if model not in MODELS_ALL:
+        raise ValueError(f"unknown model {model!r}; valid models: {', '.join(MODELS_ALL)}")
+    if model == MC_MODEL and eta is not None:
+        default_table().check_eta(float(eta))
+    return model
+
+
+def _exit_normalization(model: str, eta: float) -> float:
+    """c with L_o = F_t(eta, w_o)/(pi c) * sum_k R c_k: 1 for the dipoles (Jensen's F_t/pi, as published),
+    1 - 2 FM1_ext(eta) for the table (:func:`estimation.mc_table.exit_radiance_factor`)."""
+    if model == MC_MODEL:
+        return float(1.0 - 2.0 * fresnel_moment(eta, 1, side="external"))
+    return 1.0
+
+
 def _profile_batch(coeff_model: str, eta: float, fdr: str, theta: Array, radii: Array) -> Array:
     """R(radii; theta) for a batch of log parameters: (T, 2) x (n,) -> (n, T)."""
     ssp = np.exp(theta[:, 0])[:, None]
     sa = np.exp(theta[:, 1])[:, None]
+    if coeff_model == MC_MODEL:
+        return default_table().profile(radii[None, :], ssp, sa, eta, out_of_range="clip").T
     co = dipole_coefficients(ssp, sa, eta, model=coeff_model, fdr=fdr)
     return profile_from_coefficients(co, radii[None, :]).T
 
 
 def _disk_batch(coeff_model: str, eta: float, fdr: str, theta: Array, radii: Array) -> Array:
-    """Disk integrals int_0^r R 2 pi r' dr' (closed form) for a batch of log parameters: (n, T)."""
+    """Disk integrals int_0^r R 2 pi r' dr' (closed form / the table's cumulative) for a batch: (n, T)."""
     ssp = np.exp(theta[:, 0])[:, None]
     sa = np.exp(theta[:, 1])[:, None]
+    if coeff_model == MC_MODEL:
+        return default_table().cumulative(radii[None, :], ssp, sa, eta, out_of_range="clip").T
     return np.asarray(cumulative_disk(radii[None, :], ssp, sa, eta, model=coeff_model, fdr=fdr)).T
+
+
+def _reflectance(model: str, ssp: ArrayLike, sa: ArrayLike, eta: float, fdr: str) -> tuple[Array, Array, Array]:
+    """(R_d, l_d, D) of ``model`` at (sigma_s', sigma_a)."""
+    if model == MC_MODEL:
+        return default_table().reflectance_from_coefficients(ssp, sa, eta, out_of_range="clip")
+    return reflectance_from_coefficients(ssp, sa, eta, model=model, fdr=fdr)
+
+
+def _cutoff(model: str, tolerance: float, ssp: Array, sa: Array, eta: float, fdr: str) -> float:
+    if model == MC_MODEL:
+        return default_table().cutoff_radius_mm(tolerance, ssp, sa, eta, out_of_range="clip")
+    return cutoff_radius_mm(tolerance, ssp, sa, eta, model=model, fdr=fdr)
+
+
+def _binned_profile(model: str, eta: float, fdr: str, theta: Array, radii: Array, method: str,
+                    r_self: float, bin_mm: float) -> Array:
+    """The profile the binned methods compare with their bin values R' (n, T).
+
+    Dipoles: R at the bin nodes (as published). The table's R diverges like 1/r at the source, so a point sample
+    at d = 0 means nothing; at the node d = 0 it gives instead: ``pinv`` (self term point-sampled at d = 0) the
+    mean of R over the own patch's disk, C(r_self)/(pi r_self^2); ``tikhonov`` (hat functions integrated exactly)
+    the value that gives the first hat interval its exact disk integral, 3 C(h)/(pi h^2) - 2 R(h), h = bin.
+    """
+    out = _profile_batch(model, eta, fdr, theta, radii)
+    if model != MC_MODEL:
+        return out
+    zero = radii == 0.0
+    if not np.any(zero):
+        return out
+    if method == "pinv":
+        g = _disk_batch(model, eta, fdr, theta, np.array([r_self]))[0]
+        out[zero] = g / (np.pi * r_self**2)
+    else:
+        h = float(bin_mm)
+        g = _disk_batch(model, eta, fdr, theta, np.array([h]))[0]
+        r_h = _profile_batch(model, eta, fdr, theta, np.array([h]))[0]
+        out[zero] = 3.0 * g / (np.pi * h * h) - 2.0 * r_h
+    return out
+
+
+def model_bias(sigma_s_prime_per_mm: ArrayLike, sigma_a_per_mm: ArrayLike, eta: float, model: str, *,
+               fdr: str = "fit", radii_mfp: tuple[float, ...] = BIAS_RADII_MFP) -> dict[str, Any]:
+    """Bias of ``model`` against the Monte Carlo reference (the packaged table) at the given parameters.
+
+    Returns a dict (lists per channel): ``R_d_model``, ``R_d_reference`` and ``R_d_rel_diff`` = model/reference - 1;
+    ``profile_ratio`` (C, len(radii_mfp)) = R_model/R_reference at ``radii_mfp`` transport mean free paths
+    1/sigma_t'; ``exit_normalization`` c of the model's exit factor F_t/(pi c) (1 for the dipoles) against the
+    table's (c_ref = 1 - 2 FM1_ext(eta)); ``radiance_ratio`` = (R_d,model / c_model) / (R_d,ref / c_ref): the
+    model's predicted radiance over the reference's under uniform illumination, so a fit of the model to real
+    (transport-like) data finds R_d,ref smaller than the truth by about this factor; ``equivalent_sigma_s_prime``,
+    ``equivalent_sigma_a``: the table's parameters with the same radiance-implied R_d and the same l_d as the
+    model at these parameters (the albedo inverted by the table). ``clipped``: the parameters (or the
+    equivalent albedo) lie outside the table's albedo range and were evaluated at its edge. For ``"mc-table"``
+    every ratio is 1. ``available`` is False (with ``reason``) when eta lies outside the table's range.
+    """
+    check_model(model)
+    ssp = np.atleast_1d(np.asarray(sigma_s_prime_per_mm, dtype=np.float64))
+    sa = np.atleast_1d(np.asarray(sigma_a_per_mm, dtype=np.float64))
+    ssp, sa = np.broadcast_arrays(ssp, sa)
+    tab = default_table()
+    eta_f = float(eta)
+    out: dict[str, Any] = {"reference": MC_MODEL, "model": model, "radii_mfp": [float(r) for r in radii_mfp]}
+    lo_e, hi_e = tab.eta_range
+    if not lo_e <= eta_f <= hi_e:
+        out.update(available=False, reason=f"eta = {eta_f:g} is outside the Monte Carlo table's range "
+                                           f"[{lo_e:g}, {hi_e:g}]")
+        return out
+    lo_a, hi_a = tab.alpha_prime_range
+    alpha = ssp / (ssp + sa)
+    clipped = bool(np.any((alpha < lo_a) | (alpha > hi_a)))
+    rd_ref, ld_ref, _ = tab.reflectance_from_coefficients(ssp, sa, eta_f, out_of_range="clip")
+    st = ssp + sa
+    radii = np.asarray(radii_mfp, dtype=np.float64)[None, :] / st[:, None]  # (C, n) mm
+    prof_ref = tab.profile(radii, ssp[:, None], sa[:, None], eta_f, out_of_range="clip")
+    c_ref = _exit_normalization(MC_MODEL, eta_f)
+    if model == MC_MODEL:
+        rd_m, ld_m, prof_m, c_m = rd_ref, ld_ref, prof_ref, c_ref
+    else:
+        rd_m, ld_m, _ = reflectance_from_coefficients(ssp, sa, eta_f, model=model, fdr=fdr)
+        co = dipole_coefficients(ssp[:, None], sa[:, None], eta_f, model=model, fdr=fdr)
+        prof_m = profile_from_coefficients(co, radii)
+        c_m = _exit_normalization(model, eta_f)
+    rd_m = np.broadcast_to(np.asarray(rd_m, dtype=np.float64), ssp.shape)
+    ld_m = np.broadcast_to(np.asarray(ld_m, dtype=np.float64), ssp.shape)
+    rd_ref = np.broadcast_to(np.asarray(rd_ref, dtype=np.float64), ssp.shape)
+    radiance_ratio = (rd_m / c_m) / (rd_ref / c_ref)
+    if model == MC_MODEL:
+        eq_s, eq_a = ssp, sa
+    else:
+        rd_eq = np.clip(rd_m * c_ref / c_m, 1e-300, None)
+        a_eq = tab.invert_albedo(rd_eq, eta_f, out_of_range="clip")
+        clipped = clipped or bool(np.any(a_eq <= lo_a * (1 + 1e-12)) or np.any(a_eq >= hi_a * (1 - 1e-12)))
+        eq_s, eq_a = tab.coefficients_from_reflectance(rd_eq, ld_m, eta_f, out_of_range="clip")
+    out.update(available=True, reason="ok", clipped=clipped,
+               R_d_model=rd_m.tolist(), R_d_reference=rd_ref.tolist(), R_d_rel_diff=(rd_m / rd_ref - 1.0).tolist(),
+               profile_ratio=(prof_m / prof_ref).tolist(), exit_normalization=float(c_m),
+               exit_normalization_reference=float(c_ref), radiance_ratio=radiance_ratio.tolist(),
+               equivalent_sigma_s_prime_per_mm=np.asarray(eq_s, dtype=np.float64).tolist(),
+               equivalent_sigma_a_per_mm=np.asarray(eq_a, dtype=np.float64).tolist())
+    return out
 
 
 def _golden_batch(f: Any, lo: Array, hi: Array, iters: int = 32) -> tuple[Array, Array]:
@@ -1016,7 +1167,7 @@ def predict_radiance(patches: Patches, lights: Lights, eta: float, sigma_s_prime
     is :func:`estimation.forward.diffuse_exitance`, which this agrees with to ~1e-5 (exact far field) or to the
     clustering error (see ``far_field_theta`` of :func:`estimate_single_image`).
     """
-    check_model(model)
+    check_model(model, eta)
     if far_field not in FAR_FIELD_MODES:
         raise ValueError(f"unknown far_field {far_field!r}; valid: {', '.join(FAR_FIELD_MODES)}")
     eta_f = float(eta)
@@ -1040,7 +1191,7 @@ def predict_radiance(patches: Patches, lights: Lights, eta: float, sigma_s_prime
     v = _direct_vector(model, eta_f, fdr, theta, disk_nodes, far_nodes)  # (n, C)
     l_pred = np.stack([mats[c] @ v[:, c] for c in range(n_ch)], axis=1)
     ft = fresnel_transmittance(eta_f, patches.cos_out[vis])
-    return ft[:, None] / np.pi * l_pred
+    return ft[:, None] / (np.pi * _exit_normalization(model, eta_f)) * l_pred
 
 
 # ---------------------------------------------------------------------------------------------- public entry
@@ -1064,7 +1215,7 @@ def estimate_single_image(observed_radiance: ArrayLike, patches: Patches, lights
     lights : :class:`PointLights`, :class:`DirectionalLights`, :class:`EnvironmentMap` or E_t per patch (K, C).
     eta : relative index of refraction (fixed input).
     method : "direct" (default), "tikhonov" or "pinv" (published); see the module docstring.
-    model : "dipole-jensen" or "dipole-better".
+    model : "dipole-jensen", "dipole-better" or "mc-table" (:data:`MODELS_ALL`; the table needs 1 <= eta <= 1.8).
     bin_mm : quantization step of the binned methods (paper: 0.35 mm) and of the diagnostic profile.
     cutoff_mm : ignore pairs farther apart (KD-tree); None uses all pairs (small objects). A note is added
         when the fitted profile still holds more than ``tolerance`` of R_d beyond it.
@@ -1094,7 +1245,7 @@ def estimate_single_image(observed_radiance: ArrayLike, patches: Patches, lights
     """
     t0 = time.perf_counter()
     eta_f = float(eta)
-    check_model(model)
+    check_model(model, eta)
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; valid methods: {', '.join(METHODS)}")
     if not bin_mm > 0:
@@ -1139,7 +1290,8 @@ def estimate_single_image(observed_radiance: ArrayLike, patches: Patches, lights
     valid = np.isfinite(obs) & (ft[:, None] > 1e-6)
     if sig is not None:
         valid &= np.isfinite(sig) & (sig > 0)
-    l_obs = np.where(valid, np.pi * np.nan_to_num(obs) / np.where(ft > 1e-6, ft, 1.0)[:, None], 0.0)
+    c_exit = _exit_normalization(model, eta_f)
+    l_obs = np.where(valid, np.pi * c_exit * np.nan_to_num(obs) / np.where(ft > 1e-6, ft, 1.0)[:, None], 0.0)
     if not np.any(valid.sum(0) >= 3):
         return _failure("fewer than 3 valid observations in every channel", method, model, eta_f, t0)
     if np.all(l_obs[valid] <= 0):
@@ -1150,6 +1302,7 @@ def estimate_single_image(observed_radiance: ArrayLike, patches: Patches, lights
     if not spacing > 0:
         spacing = float(np.sqrt(np.median(patches.areas_mm2[patches.areas_mm2 > 0])))
     rho = NEAR_FIELD_SPACINGS * spacing
+    r_self = spacing / np.sqrt(np.pi)  # radius of the disk with the median patch area (pinv's self term)
     geo = _Geometry(patches.centers_mm[vis], patches.centers_mm, patches.areas_mm2, c_k, rho, cutoff_mm,
                     far_field, far_field_theta, spacing)
     notes: list[str] = []
@@ -1222,7 +1375,7 @@ def estimate_single_image(observed_radiance: ArrayLike, patches: Patches, lights
         if not np.any(l_c != 0):
             return _failure(f"channel {c}: all observed radiances are 0", method, model, eta_f, t0)
         if sig is not None:
-            w_obs = (ft[ok] / (np.pi * sig[ok, c]))  # sigma of l = pi sigma_L / F_t
+            w_obs = (ft[ok] / (np.pi * c_exit * sig[ok, c]))  # sigma of l = pi c sigma_L / F_t
         else:
             w_obs = 1.0 / (np.abs(l_c) + noise_floor * np.max(np.abs(l_c)))
         if method == "direct":
@@ -1271,14 +1424,14 @@ def estimate_single_image(observed_radiance: ArrayLike, patches: Patches, lights
                 radii = bins[fit_cols]
 
                 def model_fn_b(theta: Array, radii: Array = radii) -> Array:
-                    return _profile_batch(model, eta_f, fdr, theta, radii)
+                    return _binned_profile(model, eta_f, fdr, theta, radii, method, r_self, bin_mm)
 
                 problem = _Problem(model_fn_b, None, r_bins[fit_cols], int(fit_cols.sum()), r_bins[fit_cols])
             else:
                 # R' near d = 0 is only seen through disk integrals (smooth irradiance), so compare profiles in
                 # the metric of the data: || w (W R(theta) - W r') || (the information W^T W on r')
                 def model_fn_b(theta: Array) -> Array:
-                    return _profile_batch(model, eta_f, fdr, theta, bins)
+                    return _binned_profile(model, eta_f, fdr, theta, bins, method, r_self, bin_mm)
 
                 problem = _Problem(model_fn_b, a_t, a_t @ r_bins, l_c.size, w_obs * pred_img)
             fit = _fit_channel(problem, sigma_a_floor_per_mm, profile=profile_likelihood, model_error=model_error)
@@ -1295,7 +1448,7 @@ def estimate_single_image(observed_radiance: ArrayLike, patches: Patches, lights
     # ------------------------------------------------------------------ assemble
     ssp = np.exp(theta_hat[:, 0])
     sa = np.exp(theta_hat[:, 1])
-    rd, ld, D = reflectance_from_coefficients(ssp, sa, eta_f, model=model, fdr=fdr)
+    rd, ld, D = _reflectance(model, ssp, sa, eta_f, fdr)
     sd = np.array([np.sqrt(np.clip(np.diag(f.cov), 0, None)) for f in fits])  # (C, 2)
     # (0 when a variance vanishes: the correlation is then undefined)
     corr = np.array([float(np.clip(f.cov[0, 1] / np.sqrt(f.cov[0, 0] * f.cov[1, 1]), -1.0, 1.0))
@@ -1336,7 +1489,7 @@ def estimate_single_image(observed_radiance: ArrayLike, patches: Patches, lights
                          f"length l_d = {float(ld[c]):.3g} mm: the profile is not resolved by the mesh "
                          "(refine it; only R_d is reliable)")
     if cutoff_mm is not None:
-        need = cutoff_radius_mm(tolerance, ssp, sa, eta_f, model=model, fdr=fdr)
+        need = _cutoff(model, tolerance, ssp, sa, eta_f, fdr)
         if need > geo.cutoff:
             notes.append(f"cutoff {geo.cutoff:.3g} mm is shorter than the fitted profile needs for tolerance "
                          f"{tolerance:g} ({need:.3g} mm)")
@@ -1353,7 +1506,8 @@ def estimate_single_image(observed_radiance: ArrayLike, patches: Patches, lights
                                   lambdas if method == "tikhonov" else None, tuple(notes))
     extra = {"far_field": geo.far_field, "far_field_theta": geo.theta if geo.far_field == "clustered" else None,
              "far_terms": int(geo.n_far_terms), "near_pairs": int(geo.near_j.size),
-             "seconds_system": float(t_system), "seconds_fit": float(seconds - t_system)}
+             "seconds_system": float(t_system), "seconds_fit": float(seconds - t_system),
+             "exit_normalization": float(c_exit), "model_bias": model_bias(ssp, sa, eta_f, model, fdr=fdr)}
     return SingleImageResult(
         True, "ok" if not notes else "; ".join(notes), method, model, eta_f,
         sigma_s_prime_per_mm=ssp, sigma_a_per_mm=sa, R_d=np.asarray(rd), l_d_mm=np.asarray(ld), D_mm=np.asarray(D),
@@ -1420,7 +1574,7 @@ def _derived_intervals(theta: Array, covs: list[Array], eta: float, model: str, 
     h = 1e-5
     for c, (t, cov) in enumerate(zip(theta, covs)):
         def f(tt: Array) -> Array:
-            rd, ld, _ = reflectance_from_coefficients(np.exp(tt[0]), np.exp(tt[1]), eta, model=model, fdr=fdr)
+            rd, ld, _ = _reflectance(model, np.exp(tt[0]), np.exp(tt[1]), eta, fdr)
             return np.log(np.array([rd, ld], dtype=np.float64))
 
         f0 = f(t)
