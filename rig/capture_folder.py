@@ -25,6 +25,7 @@ import hashlib
 import json
 import math
 import sys
+import tempfile
 import time
 import tomllib
 from dataclasses import dataclass, field
@@ -825,14 +826,33 @@ def _strip_gradients(prov: Mapping[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in prov.items() if k not in ("gradients", "maps")}
 
 
+MEMMAP_MIN_PX = 4_000_000
+"""Frames of at least this many pixels get their full-size intermediate maps as memory maps in a scratch folder
+inside the output folder (deleted afterwards) instead of RAM: a 24 MP capture's maps are ~4 frame sets."""
+
+
 def estimate_capture(capture: Capture, out_dir: str | Path, fmt: str = "exr", tile_rows: int | None = None, *,
-                     preview: str = "auto") -> dict[str, Any]:
+                     preview: str = "auto", memmap_min_px: int = MEMMAP_MIN_PX) -> dict[str, Any]:
     """Gradient maps (Ma et al. 2007), the grounded diffusion estimate (with a sphere) and the seed's D (with a
     seed calibration) for a loaded capture; writes the maps into ``out_dir`` (:func:`rig.maps_io.write_maps`) and
     returns a JSON-ready summary (per-channel medians, the diffusion summary with intervals, files, notes).
 
-    ``fmt``: "exr" or "tiff"; ``tile_rows``: rows per processing tile of ``compute_maps`` (None: its default).
+    ``fmt``: "exr" or "tiff"; ``tile_rows``: rows per processing tile of ``compute_maps`` (None: its default);
+    ``memmap_min_px``: see :data:`MEMMAP_MIN_PX`.
     """
+    Path(out_dir).mkdir(parents=True, exist_ok=True)
+    scratch = (tempfile.TemporaryDirectory(prefix=".scratch-", dir=out_dir)
+               if capture.shape[0] * capture.shape[1] >= memmap_min_px else None)
+    try:
+        return _estimate_capture(capture, out_dir, fmt, tile_rows, preview,
+                                 None if scratch is None else Path(scratch.name))
+    finally:
+        if scratch is not None:
+            scratch.cleanup()
+
+
+def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows: int | None, preview: str,
+                      scratch: Path | None) -> dict[str, Any]:
     from estimation.diffusion import compare_estimates, diffusion_seed, estimate_sphere, sphere_geometry
     from estimation.gradients import compute_maps
 
@@ -865,7 +885,8 @@ def estimate_capture(capture: Capture, out_dir: str | Path, fmt: str = "exr", ti
                             view_dirs=view, tile_rows=tile_rows or 256, white_level=1.0,
                             saturation=rad.saturation_level, dark_threshold=rad.dark_level, object_mask=obj,
                             geometry_normals=geo_normals, reference_normal=n_ref, surface_center_mm=center,
-                            surface_radius_mm=radius, exposure_s=exposure)
+                            surface_radius_mm=radius, exposure_s=exposure,
+                            out_dir=None if scratch is None else scratch / "gradients")
     except ValueError as exc:
         raise CaptureError(f"{cap.file}: gradient maps failed: {exc}") from exc
     t_maps = time.perf_counter() - t0
@@ -875,7 +896,8 @@ def estimate_capture(capture: Capture, out_dir: str | Path, fmt: str = "exr", ti
     diff_summary: dict[str, Any]
     if cap.geometry is not None:
         assert normals is not None
-        est = estimate_sphere(maps, radius_mm=cap.geometry.radius_mm, true_normals=normals, region=obj)
+        est = estimate_sphere(maps, radius_mm=cap.geometry.radius_mm, true_normals=normals, region=obj,
+                              tile_rows=tile_rows or 256, out_dir=None if scratch is None else scratch / "diffusion")
         diffusion = est.maps
         diff_summary = {"estimator": "grounded sphere (docs/gradients.md sec. 5)", **est.summary.as_dict()}
     else:

@@ -524,3 +524,22 @@ def test_drive_values_reach_the_led_model(small_capture) -> None:
     np.savez(small_capture / "drive.npz", q=quantized)
     with pytest.raises(Exception, match=r"leds\.drive_file.*arrays named after gradient patterns"):
         load_capture(small_capture)
+
+
+def test_memory_mapped_intermediates_give_the_same_maps(small_capture, tmp_path) -> None:
+    """Large captures keep their full-size intermediate maps in memory maps (MEMMAP_MIN_PX); forcing that path
+    on a small capture gives the same files, and the scratch folder is gone afterwards."""
+    from rig.capture_folder import estimate_capture
+    from rig.maps_io import read_maps
+
+    cap = load_capture(small_capture)
+    ram = estimate_capture(cap, tmp_path / "ram", "exr", 32, preview="opencv", memmap_min_px=10 ** 12)
+    mm = estimate_capture(cap, tmp_path / "mm", "exr", 32, preview="opencv", memmap_min_px=0)
+    a, b = read_maps(tmp_path / "ram"), read_maps(tmp_path / "mm")
+    assert set(a.arrays) == set(b.arrays) and "D_mm" in a.arrays
+    for name in a.arrays:
+        np.testing.assert_array_equal(a.arrays[name], b.arrays[name], err_msg=name)
+    for name in a.masks:
+        np.testing.assert_array_equal(a.masks[name], b.masks[name], err_msg=name)
+    assert ram["diffusion"] == mm["diffusion"]
+    assert not list((tmp_path / "mm").glob(".scratch-*"))
