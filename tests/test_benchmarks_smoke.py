@@ -62,3 +62,11 @@ def test_monte_carlo_benchmark_quick_prints_figures():
     data = json.loads(proc.stdout)
     for key in ("point_light", "gradient_x"):
         assert data[key]["seconds"] > 0 and 0 < data[key]["rel_stderr_median"] < 1
+
+
+def test_mc_single_image_benchmark_quick_prints_models_and_verdict():
+    proc = _run("mc_single_image.py")
+    assert proc.returncode == 0, proc.stderr
+    assert "paths/s" in proc.stdout and "ACCEPTANCE (best model" in proc.stdout
+    for model in ("mc-table", "dipole-better", "dipole-jensen"):
+        assert f"| {model} |" in proc.stdout

@@ -1,0 +1,61 @@
+"""Issue 8 acceptance on Monte Carlo frames: marble-R (sigma_s' 2.19, sigma_a 0.002 /mm, eta 1.3) cube under one
+point light, rendered by simulators.mc and fitted by estimate_single_image (benchmarks/mc_single_image.py is the
+full-size run; this is the same pipeline at 64 x 64 px, 64 spp, 1 mm patches, ~10 s including numba compile).
+
+Tolerances:
+- units: the MC image over predict_radiance(model="mc-table") at the true parameters, median over the patches
+  >= 5 mm from a cube edge (~1000 patches; per-window MC error ~4 %, so the median's noise is ~0.2 %), must lie
+  in [0.95, 1.05]: the exit-angle model error of the table is a few % (docs/monte-carlo.md sec. 2); a convention
+  mismatch (pi, or the exit normalization c = 0.939 at eta 1.3) would be off by >= 6 %.
+- the acceptance itself (sigma_s' within 10 %, sigma_a within 50 % or flagged with an interval holding the
+  truth) is NOT met yet on this cube and is not a test here: benchmarks/mc_single_image.py prints it with a
+  PASS/FAIL verdict (sigma_s' comes out 25-40 % low with every model; the frame agrees with the table to ~1 %
+  away from edges, and the fit recovers the truth exactly from the table's own prediction on the same mask:
+  the flat-surface R(d) sum is wrong at the cube's edges, where the information about sigma_s' sits).
+- the classical dipole's sigma_a error is at least the table model's (reported with the numbers).
+"""
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+
+from mc_single_image import ETA, MODELS, TRUTH, fit_row, observations, render_frame
+from estimation.single_image import predict_radiance
+
+SIZE, SPP, EDGE_MM, PATCH_MM = 64, 64, 20.0, 1.0
+
+
+@pytest.fixture(scope="module")
+def scene():
+    frame = render_frame(SIZE, SPP, EDGE_MM, *TRUTH, seed=3, cache=False)
+    pat, light, obs, sig, edge = observations(frame, SIZE, EDGE_MM, PATCH_MM)
+    return frame, pat, light, obs, sig, edge
+
+
+@pytest.fixture(scope="module")
+def rows(scene):
+    _, pat, light, obs, sig, _ = scene
+    return {m: fit_row(m, obs, sig, pat, light) for m in MODELS}
+
+
+def test_mc_image_units_match_estimator(scene):
+    frame, pat, light, obs, sig, edge = scene
+    assert frame["truncated_fraction"] == 0
+    vis = pat.visible_index
+    ok = np.isfinite(obs[vis, 0]) & (edge[vis] >= 5.0)
+    assert ok.sum() > 500
+    pred = predict_radiance(pat, light, ETA, TRUTH[0], TRUTH[1], model="mc-table")[:, 0]   # visible rows
+    ratio = float(np.median(obs[vis, 0][ok] / pred[ok]))
+    print(f"MC / mc-table at truth, >= 5 mm from edges: {ratio:.4f} ({ok.sum()} patches)")
+    assert 0.95 <= ratio <= 1.05
+
+
+def test_classical_dipole_sigma_a_error_not_smaller(rows):
+    best, classical = rows["mc-table"], rows["dipole-jensen"]
+    assert best["ok"] and classical["ok"]
+    print(f"mc-table: sigma_s' {best['err_sigma_s_prime']:+.1%}, sigma_a {best['err_sigma_a']:+.1%}; "
+          f"dipole-jensen: sigma_s' {classical['err_sigma_s_prime']:+.1%}, sigma_a {classical['err_sigma_a']:+.1%}")
+    assert abs(classical["err_sigma_a"]) >= abs(best["err_sigma_a"])
