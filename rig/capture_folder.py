@@ -21,7 +21,6 @@ parameters from polarized spherical gradient illumination" (the seed); Jensen et
 from __future__ import annotations
 
 import csv
-import hashlib
 import json
 import math
 import sys
@@ -37,10 +36,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from drivers.errors import ConfigError, RigError
-from estimation.camera import PinholeCamera, look_at_rotation
+from estimation.camera import OrthographicCamera, PinholeCamera, look_at_rotation
 from estimation.gradients import PATTERNS, POLARIZATIONS, LedRig
 
 from .imageio import ImageFileError, read_image
+from .provenance import jsonable, sha256_file
+from .session import software_version
 
 __all__ = ["CAPTURE_FILE", "CAPTURE_FORMAT", "CAPTURE_FORMAT_VERSION", "CaptureError", "FrameEntry",
            "LedCalibration", "OrthographicCamera", "ReferenceTarget", "Radiometry", "SphereGeometry", "SeedSpec",
@@ -173,13 +174,6 @@ class _Table:
         return p
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
 
 def _rel(path: Path, folder: Path) -> str:
     try:
@@ -238,40 +232,6 @@ class LedCalibration:
         assert self.positions_mm is not None
         return {"ideal": False, "source": self.source, "sha256": self.sha256, "count": int(len(self.positions_mm)),
                 "drive_patterns": sorted(self.drive), "drive_peak": self.drive_peak}
-
-
-@dataclass(frozen=True)
-class OrthographicCamera:
-    """Orthographic camera: rig point X projects to pixel (u, v) = (Xc_x, Xc_y)/pixel_size_mm + (cx, cy) with
-    Xc = R (X - target_mm) and the rows of R the camera's right, down and forward axes in the rig frame (the
-    OpenCV convention of :class:`estimation.camera.PinholeCamera`); ``target_mm`` images at (cx, cy)."""
-
-    width_px: int
-    height_px: int
-    pixel_size_mm: float
-    rotation: tuple[tuple[float, float, float], ...]
-    target_mm: tuple[float, float, float]
-    cx_px: float
-    cy_px: float
-    ray_start_mm: float = 1e5  # rays start this far behind the image plane through target_mm
-
-    @property
-    def R(self) -> NDArray[np.float64]:
-        return np.asarray(self.rotation, dtype=np.float64)
-
-    def project(self, points_mm: Any) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Pixel coordinates (..., 2) and depth along the forward axis (..., ) of rig points (..., 3)."""
-        xc = (np.asarray(points_mm, dtype=np.float64) - np.asarray(self.target_mm)) @ self.R.T
-        return np.stack([xc[..., 0] / self.pixel_size_mm + self.cx_px,
-                         xc[..., 1] / self.pixel_size_mm + self.cy_px], axis=-1), xc[..., 2]
-
-    def pixel_rays(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """Origins (H, W, 3) and unit directions (H, W, 3) of the parallel rays through every pixel centre."""
-        v, u = np.mgrid[0:self.height_px, 0:self.width_px].astype(np.float64)
-        R = self.R
-        o = (np.asarray(self.target_mm)[None, None, :] + ((u - self.cx_px) * self.pixel_size_mm)[..., None] * R[0]
-             + ((v - self.cy_px) * self.pixel_size_mm)[..., None] * R[1] - self.ray_start_mm * R[2])
-        return o, np.broadcast_to(R[2], o.shape).copy()
 
 
 @dataclass(frozen=True)
@@ -419,7 +379,7 @@ def _read_frames(file: str, folder: Path, data: dict[str, Any]
             raise ConfigError(file, f"frames[{i}].file", f"an image of {f0.shape[1]} x {f0.shape[0]} px (W x H) "
                               f"like frames[0] ({_rel(f0.file, folder)})",
                               f"{_rel(path, folder)}: {shape[1]} x {shape[0]} px")
-        entries.append(FrameEntry(i, path, pattern, pol, exposure, _sha256(path), str(meta.get("format")), shape))
+        entries.append(FrameEntry(i, path, pattern, pol, exposure, sha256_file(path), str(meta.get("format")), shape))
         images[key] = img
     miss = missing_frames(images)
     if miss:
@@ -487,7 +447,7 @@ def _read_leds(file: str, folder: Path, data: dict[str, Any]) -> LedCalibration:
         if t.has("intensity"):
             raise t.err("intensity", "nothing: the LED file holds the intensities", "intensity")
         a, p = _led_file(t, folder)
-        pos, inten, source, sha = a[:, :3], a[:, 3:], _rel(p, folder), _sha256(p)
+        pos, inten, source, sha = a[:, :3], a[:, 3:], _rel(p, folder), sha256_file(p)
         where = f"{p.name}"
     else:
         pos = t.matrix("positions_mm", 3)
@@ -745,7 +705,7 @@ def load_capture(folder: str | Path) -> Capture:
     seed = _read_seed(file, data)
     spec_ok, spec_note = _specular_possible(set(images))
     notes = tuple(n for n in (spec_note,) if n)
-    return Capture(root, cfile, _sha256(cfile), name, frames, images, leds, camera, cam_spec, radiometry, mask,
+    return Capture(root, cfile, sha256_file(cfile), name, frames, images, leds, camera, cam_spec, radiometry, mask,
                    mask_file, geo, seed, spec_ok, notes)
 
 
@@ -809,10 +769,6 @@ def _albedo_scale(cap: Capture, leds: LedRig | None, n_ref: NDArray[np.float64])
              "signal_per_s": sig})
 
 
-def _software_version() -> str:
-    from .session import software_version
-    return software_version()
-
 
 def _channel_medians(a: NDArray[Any], known: NDArray[np.bool_]) -> list[float | None]:
     out: list[float | None] = []
@@ -856,7 +812,7 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
     from estimation.diffusion import compare_estimates, diffusion_seed, estimate_sphere, sphere_geometry
     from estimation.gradients import compute_maps
 
-    from .maps_io import _jsonable, write_maps
+    from .maps_io import write_maps
 
     t0 = time.perf_counter()
     cap = capture
@@ -932,7 +888,7 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
     prov: dict[str, Any] = {
         "name": cap.name,
         "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        "software": {"name": "sssrig", "version": _software_version(),
+        "software": {"name": "sssrig", "version": software_version(),
                      "python": sys.version.split()[0], "numpy": np.__version__},
         "capture": {"folder": str(cap.folder.resolve()), "file": CAPTURE_FILE, "sha256": cap.sha256,
                     "format_version": CAPTURE_FORMAT_VERSION},
@@ -944,7 +900,7 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
                        "saturation_level": rad.saturation_level, "dark_level": rad.dark_level,
                        "reference_normal": n_ref},
         "object": {"mask": None if cap.mask_file is None else
-                   {"file": _rel(cap.mask_file, cap.folder), "sha256": _sha256(cap.mask_file)},
+                   {"file": _rel(cap.mask_file, cap.folder), "sha256": sha256_file(cap.mask_file)},
                    "shape": "sphere" if cap.geometry else "unknown",
                    **({"center_mm": cap.geometry.center_mm, "radius_mm": cap.geometry.radius_mm}
                       if cap.geometry else {})},
@@ -955,13 +911,13 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
     }
     try:
         files = write_maps(out_dir, maps, diffusion, fmt=fmt, provenance=prov, seed=seed_est, preview=preview,
-                           extra_sidecar={"summary": _jsonable(summary)})
+                           extra_sidecar={"summary": jsonable(summary)})
     except OSError as exc:
         raise CaptureError(f"{out_dir}: cannot write the maps ({exc})") from exc
     summary["files"] = {k: str(p) for k, p in files.items()}
     summary["seconds_maps"] = t_maps
     summary["seconds"] = time.perf_counter() - t0
-    return _jsonable(summary)
+    return jsonable(summary)
 
 
 # ------------------------------------------------------------------------------------------------ CLI

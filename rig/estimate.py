@@ -14,7 +14,6 @@ and the seed's D = k R_d / |n_z| (``seed_k``), reported beside the grounded grad
 """
 from __future__ import annotations
 
-import hashlib
 import os
 import time
 from pathlib import Path
@@ -25,6 +24,7 @@ import numpy as np
 from drivers.camera.raw import load_linear
 
 from .geometry import camera_from_dict
+from .provenance import sha256_file
 from .session import Session, SessionError
 
 SATURATION = 0.98   # linear values at or above this fraction of white are masked
@@ -33,9 +33,6 @@ SATURATION = 0.98   # linear values at or above this fraction of white are maske
 def _radiance_per_value(cam: dict[str, Any], exposure_s: float) -> float:
     return (cam["white_level_dn"] - cam["black_level_dn"]) / (cam["gain_dn_per_unit"] * exposure_s)
 
-
-def _sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 class SessionCalibration:
@@ -150,7 +147,7 @@ def resolve_calibration(session: Session, calibration: Any = None) -> SessionCal
     mpath = session.root / "manifest.json"
     if calibration is not None:
         cal = calibration if isinstance(calibration, Calibration) else load_calibration(calibration)
-        return SessionCalibration(cal, "given", _sha256(Path(cal.path)), manifest)
+        return SessionCalibration(cal, "given", sha256_file(Path(cal.path)), manifest)
     rec = manifest.get("calibration")
     if rec is None:
         return None
@@ -161,7 +158,7 @@ def resolve_calibration(session: Session, calibration: Any = None) -> SessionCal
     if not path.is_file():
         raise SessionError(f"{mpath}: field 'calibration.file': the calibration file {path} the session was "
                            "captured with is missing; give --calibration FILE (or restore it)")
-    now = _sha256(path)
+    now = sha256_file(path)
     if now != rec["sha256"]:
         raise SessionError(f"{path}: the calibration file changed since the session was captured (manifest "
                            f"{mpath} field 'calibration.sha256': recorded sha256 {rec['sha256']}, file now has "

@@ -27,9 +27,7 @@ D ~ R_d/|n_z|); ``docs/gradients.md`` for every quantity's definition.
 """
 from __future__ import annotations
 
-import hashlib
 import json
-import math
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,6 +41,7 @@ from estimation.diffusion import DiffusionMaps, SeedEstimate
 from estimation.gradients import GradientMaps
 
 from .imageio import atomic_write, write_exr, write_float_tiff, write_png8
+from .provenance import jsonable, sha256_file
 
 __all__ = ["MAPS_FORMAT", "MAPS_FORMAT_VERSION", "SIDECAR", "PREVIEW", "MASKS", "MASK_BITS", "MAP_SPECS",
            "PREVIEW_TILE_PX", "MapSpec", "MapsError", "LoadedMaps", "write_maps", "read_maps", "preview_size_px"]
@@ -135,38 +134,10 @@ MAP_SPECS: dict[str, MapSpec] = {s.name: s for s in [
 
 
 # ---------------------------------------------------------------------------------------------- helpers
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
-def _jsonable(o: Any) -> Any:
-    """Plain JSON (no NaN/inf: they become null) from numpy, paths, tuples and dataclass-free dicts."""
-    if isinstance(o, Mapping):
-        return {str(k): _jsonable(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_jsonable(v) for v in o]
-    if isinstance(o, np.ndarray):
-        return _jsonable(o.tolist())
-    if isinstance(o, (np.bool_, bool)):
-        return bool(o)
-    if isinstance(o, (np.integer,)):
-        return int(o)
-    if isinstance(o, (float, np.floating)):
-        f = float(o)
-        return f if math.isfinite(f) else None
-    if isinstance(o, Path):
-        return str(o)
-    if o is None or isinstance(o, (str, int)):
-        return o
-    return str(o)
 
 
 def _write_json(path: Path, data: Mapping[str, Any]) -> Path:
-    text = json.dumps(_jsonable(data), indent=2, allow_nan=False) + "\n"
+    text = json.dumps(jsonable(data), indent=2, allow_nan=False) + "\n"
     return atomic_write(path, lambda tmp: tmp.write_text(text))
 
 
@@ -433,7 +404,7 @@ def write_maps(out_dir: str | os.PathLike[str], maps: GradientMaps, diffusion: D
         else:
             write_float_tiff(p, arr, description=json.dumps(meta))
         written[name] = p
-        files[name] = {"file": p.name, **spec.sidecar(), "sha256": _sha256(p),
+        files[name] = {"file": p.name, **spec.sidecar(), "sha256": sha256_file(p),
                        "known_fraction": [float(np.isfinite(arr[..., c]).mean()) for c in range(3)]}
     bits = _mask_field(maps, diffusion)
     pm = write_png8(out / MASKS, bits.astype(np.float32) / 255.0)
@@ -449,7 +420,7 @@ def write_maps(out_dir: str | os.PathLike[str], maps: GradientMaps, diffusion: D
         "file_format": {"exr": "OpenEXR float32, ZIP, channels R,G,B (vectors: x,y,z stored as R,G,B)",
                         "tiff": "TIFF float32, zlib, 3 samples per pixel (RGB photometric; vectors: x,y,z)"}[fmt],
         "files": files,
-        "masks": {"file": MASKS, "sha256": _sha256(pm), "encoding": "8-bit RGB PNG; per colour channel a bit "
+        "masks": {"file": MASKS, "sha256": sha256_file(pm), "encoding": "8-bit RGB PNG; per colour channel a bit "
                   "field (per-pixel masks are set in all three channels)", "bits": dict(MASK_BITS)},
         "preview": {"file": PREVIEW, "backend": backend, "width_px": pw, "height_px": ph, "tiles": tiles,
                     "note": "display-encoded for viewing only (sRGB albedo, (n+1)/2 normals, viridis scalars with "
@@ -502,7 +473,7 @@ def read_maps(out_dir: str | os.PathLike[str], *, verify: bool = True) -> Loaded
         a = _read_float(p)
         if a.shape != (*shape, 3):
             raise MapsError(p, f"shape {a.shape}, expected {(*shape, 3)} from maps.json")
-        if verify and _sha256(p) != entry["sha256"]:
+        if verify and sha256_file(p) != entry["sha256"]:
             raise MapsError(p, "sha256 differs from maps.json: the file was changed after it was written")
         arrays[name] = a
     import cv2
@@ -510,7 +481,7 @@ def read_maps(out_dir: str | os.PathLike[str], *, verify: bool = True) -> Loaded
     raw = cv2.imread(str(mp), cv2.IMREAD_UNCHANGED)
     if raw is None or raw.shape != (*shape, 3):
         raise MapsError(mp, f"expected an 8-bit RGB PNG of {shape[1]} x {shape[0]} px")
-    if verify and _sha256(mp) != side["masks"]["sha256"]:
+    if verify and sha256_file(mp) != side["masks"]["sha256"]:
         raise MapsError(mp, "sha256 differs from maps.json: the file was changed after it was written")
     bits = raw[..., ::-1]
     masks = {k: (bits & b) != 0 for k, b in side["masks"]["bits"].items()}

@@ -14,7 +14,6 @@ a face-ID buffer with OpenCV (object pixels), and each visible patch centre is s
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import os
@@ -34,6 +33,8 @@ from estimation.camera import PinholeCamera, look_at_rotation
 
 from .config import _REQUIRED, _Reader
 from .imageio import ImageFileError, RAW_SUFFIXES, atomic_write, read_image
+from .provenance import jsonable, sha256_file
+from .session import software_version
 
 __all__ = ["SceneFileError", "Scene", "MeshSpec", "CameraSpec", "DistortedCamera", "ImageSpec", "PointLightSpec",
            "DirectionalLightSpec", "EnvironmentSpec", "MaterialSpec", "EstimationSpec", "NoiseSpec",
@@ -383,13 +384,6 @@ class _SceneReader(_Reader):
         return p
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
 
 def _max_normalized_radius(cam: PinholeCamera, dist: tuple[float, float, float, float, float]) -> float:
     """Largest undistorted normalized radius inside the image (its corners and edge midpoints) + 10 %."""
@@ -442,7 +436,7 @@ def _read_mesh(r: _SceneReader, base: Path) -> tuple[MeshSpec, Any]:
     if mesh.is_watertight and mesh.volume < 0:
         mesh.invert()
         notes.append("face winding was inward (negative volume): normals flipped to point outward")
-    spec = MeshSpec(path, units, mm, translation, max_edge, _sha256(path), tuple(notes))
+    spec = MeshSpec(path, units, mm, translation, max_edge, sha256_file(path), tuple(notes))
     return spec, mesh
 
 
@@ -630,8 +624,8 @@ def parse_scene(data: dict[str, Any], path: Path, file: str | None = None) -> Sc
                           f"{mask_path.name} is {mask.shape[1]} x {mask.shape[0]}", mask_path.name)
         if not mask.any():
             raise im.fail("mask", "a mask with some nonzero (used) pixels", mask_path.name)
-    image_spec = ImageSpec(img_path, radiance_scale, cross, specular_free, cone, sat, mask_path, _sha256(img_path),
-                           None if mask_path is None else _sha256(mask_path), fmt, tuple(image.shape))
+    image_spec = ImageSpec(img_path, radiance_scale, cross, specular_free, cone, sat, mask_path, sha256_file(img_path),
+                           None if mask_path is None else sha256_file(mask_path), fmt, tuple(image.shape))
 
     # camera (after the image: its size is checked against the intrinsics)
     cam_dict, dist, pose_from = _read_camera(top.section("camera"))
@@ -692,7 +686,7 @@ def parse_scene(data: dict[str, Any], path: Path, file: str | None = None) -> Sc
             raise er.fail("phi0", "a direction not parallel to 'up'", list(phi0))
         env = EnvironmentSpec(env_path, _channels(er, "radiance_scale", n_ch, positive=True, default=1.0), up,
                               phi0, er.str("azimuth", "counterclockwise", choices=("counterclockwise", "clockwise")),
-                              er.num("rotation_deg", 0.0), er.int("max_size", 64, lo=4, hi=2048), _sha256(env_path))
+                              er.num("rotation_deg", 0.0), er.int("max_size", 64, lo=4, hi=2048), sha256_file(env_path))
         env_data = np.broadcast_to(env_img, env_img.shape[:2] + (n_ch,)) / np.asarray(env.radiance_scale)
     if not points and not dirs and env is None:
         raise top.fail("point_lights", "at least one light: [[point_lights]], [[directional_lights]] or "
@@ -745,7 +739,7 @@ def parse_scene(data: dict[str, Any], path: Path, file: str | None = None) -> Sc
                               _channels(nr, "read_noise", n_ch, nonneg=True, default=0.0))
 
     try:
-        scene_hash = _sha256(path)
+        scene_hash = sha256_file(path)
     except OSError:
         scene_hash = ""
     return Scene(path=path, name=name, sha256=scene_hash, mesh=mesh_spec, camera=camera, image=image_spec,
@@ -842,32 +836,6 @@ def _pixel_variance(scene: Scene) -> Array:
     return var
 
 
-def _jsonable(x: Any) -> Any:
-    """numpy -> lists; NaN/inf -> None (strict JSON); tuples -> lists; Paths -> str."""
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
-    if isinstance(x, (np.bool_, bool)):
-        return bool(x)
-    if isinstance(x, (np.integer,)):
-        return int(x)
-    if isinstance(x, (float, np.floating)):
-        f = float(x)
-        return f if math.isfinite(f) else None
-    if isinstance(x, Path):
-        return str(x)
-    return x
-
-
-def _software_version() -> str:
-    try:
-        from importlib.metadata import version
-        return version("sssrig")
-    except Exception:  # noqa: BLE001 - not installed as a distribution
-        return "unknown"
 
 
 def _scene_summary(scene: Scene) -> dict[str, Any]:
@@ -1014,11 +982,11 @@ def estimate_scene(scene: Scene, *, method: str | None = None) -> dict[str, Any]
         "mask_sha256": scene.image.mask_sha256,
         "environment": None if scene.environment is None else str(scene.environment.path),
         "environment_sha256": None if scene.environment is None else scene.environment.sha256,
-        "method": res.method, "software": "sssrig", "software_version": _software_version(),
+        "method": res.method, "software": "sssrig", "software_version": software_version(),
         "python": platform.python_version(), "numpy": np.__version__,
         "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
-    return _jsonable(out)
+    return jsonable(out)
 
 
 # ---------------------------------------------------------------------------------------------- CLI

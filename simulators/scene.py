@@ -111,28 +111,9 @@ class RenderResult:
 def render(obj: SphereObject, camera: PinholeCamera, led_positions_mm: FloatArray,
            led_radiant_intensity: FloatArray, polarization: Polarization,
            *, include_specular: bool = True) -> RenderResult:
-    """Radiance image of ``obj`` lit by the LEDs' current emission (N, 3)."""
-    H, W = camera.height_px, camera.width_px
-    img = np.zeros((H, W, 3))
-    pts, hit = obj.intersect(camera)
-    if not np.any(led_radiant_intensity > 0) or not hit.any():
-        return RenderResult(img, hit)
-    p = pts[hit]
-    n = obj.normals_at(p)
-    v = camera.view_directions(p)
-    cos_o = np.clip(np.sum(n * v, axis=-1), 0.0, 1.0)
-    centers, normals, areas = obj.patches()
-    e_t = led_irradiance(centers, normals, led_positions_mm, led_radiant_intensity, obj.eta)
-    b = diffuse_exitance(p, centers, areas, e_t, np.asarray(obj.sigma_s_prime_per_mm),
-                         np.asarray(obj.sigma_a_per_mm), obj.eta)
-    diffuse = fresnel_transmittance(obj.eta, cos_o)[:, None] / np.pi * b
-    spec = 0.0
-    if include_specular and polarization != Polarization.CROSS:
-        spec = specular_radiance(p, n, v, led_positions_mm, led_radiant_intensity, obj.eta,
-                                 obj.specular_roughness)
-    scale = 1.0 if polarization == Polarization.NONE else 0.5
-    img[hit] = scale * diffuse + spec
-    return RenderResult(img, hit)
+    """Radiance image of ``obj`` lit by the LEDs' current emission (N, 3) (:func:`render_object` on a sphere)."""
+    return render_object(obj, camera, led_positions_mm, led_radiant_intensity, polarization,
+                         include_specular=include_specular)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -395,7 +376,9 @@ def _exitance(obj: SceneObject, points_mm: FloatArray, led_positions_mm: FloatAr
 def render_object(obj: SceneObject, camera: PinholeCamera, led_positions_mm: FloatArray,
                   led_radiant_intensity: FloatArray, polarization: Polarization,
                   *, include_specular: bool = True) -> RenderResult:
-    """:func:`render` for any scene object (sphere, bumpy slab, mesh); for a sphere it computes the same image."""
+    """Radiance image of any scene object (sphere, bumpy slab, mesh) lit by the LEDs' current emission (N, 3):
+    cross-polarized frames hold half the diffuse light and no specular, parallel ones half the diffuse light
+    plus the specular reflection."""
     H, W = camera.height_px, camera.width_px
     img = np.zeros((H, W, 3))
     pts, hit = obj.intersect(camera)
