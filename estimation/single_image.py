@@ -25,15 +25,24 @@ l ~ W r (Eq. 20-27), r = pinv(W) l (Eq. 28) and a dipole fit to r (Eq. 29), or �
   (n ~ 130 nodes, whatever the number m of observations), then: grid start, ``scipy.optimize.least_squares``
   with bounds (3 starts); recovers its own forward model to ~1e-5.
 
-Cost. The far field (pairs beyond 2 patch spacings) is summed exactly for small problems and, above
-:data:`EXACT_PAIR_BUDGET` (observation, source) pairs, over a Barnes-Hut hierarchy of source clusters, each
-represented by 6 pseudo-sources matching its c-weighted moments to second order (``far_field``,
+Cost. The far field (pairs beyond 2 patch spacings) of the direct method is summed exactly for small problems
+and, above :data:`EXACT_PAIR_BUDGET` (observation, source) pairs, over a Barnes-Hut hierarchy of source
+clusters, each represented by 6 pseudo-sources matching its c-weighted moments to second order (``far_field``,
 ``far_field_theta``; :class:`_SourceClusters`): O(m log K) instead of O(m K) pairs, rms error of l ~0.03 % at the
-default opening ratio 0.35. Every method then works on the QR-reduced n x n system. Measured
-(benchmarks/single_image.py, sphere, 2 shared cores): 50k patches (15.7k observed) in 2-4 s, 100k in 7-9 s;
-the literal dense method needs 8 m_obs m bytes (6.3 GB at 50k). The published ``pinv`` route is
-ill-conditioned (cond(W) ~1e4-1e5): it reacts to that 0.03 % far-field change by a few % in its parameters
-(+2.7 % in sigma_s' at 10k patches); ``far_field="exact"`` reproduces the dense textbook computation.
+default opening ratio 0.35 for long profiles (marble), ~0.15 % for short ones (skin-B, ketchup-G at 5k patches;
+tests/estimation/test_single_image_far_field.py); the fitted parameters move by < 1 %. Every far term (pair or
+pseudo-source) enters W through its interval index and the moments sum w v^p (p = 0..3, v its offset in the
+interval): four bincounts per channel, mapped to the nodes once (:class:`_CubicLogBasis`; the hat basis of the
+binned methods likewise with two moments, :class:`_HatBasis`). Every method then works on the QR-reduced n x n
+system (one Householder QR of [W | l] without forming Q). The published ``pinv`` route is ill-conditioned
+(cond(W) ~1e4-1e5): it reacts to a 0.03 % far-field change by a few % in its parameters (+2.7 % in sigma_s' at
+10k patches with the direct method's clustering), so the binned methods sum every pair (dense blocks) up to
+:data:`EXACT_PAIR_BUDGET_BINNED` pairs — reproducing the dense textbook computation — and cluster beyond it
+with the tighter opening :data:`FAR_FIELD_THETA_BINNED` (0.2; at 10k patches -0.13 % in sigma_s', but the
+ill-conditioning makes that error erratic in the opening: 0.15 gave -0.8 %, 0.25 -3.6 %). Measured
+(benchmarks/single_image.py section 3, sphere, marble-R under a sky map, 2 shared cores; ratios within one
+run): at 10k patches (3148 observed) the direct method is ~4x faster than the literal dense pinv and our
+exact-far-field pinv ~2x (equal parameters); the literal dense method needs 8 m_obs m bytes (6.3 GB at 50k).
 
 Models (``model=``, :data:`MODELS_ALL`): the dipoles of :mod:`.dipole` and ``"mc-table"``, the packaged Monte Carlo
 table of the half-space profile (:mod:`.mc_table`, eta 1.0-1.8, checked up front). For the table every method uses
@@ -98,6 +107,9 @@ __all__ = [
     "predict_radiance",
     "FAR_FIELD_MODES",
     "EXACT_PAIR_BUDGET",
+    "EXACT_PAIR_BUDGET_BINNED",
+    "FAR_FIELD_THETA",
+    "FAR_FIELD_THETA_BINNED",
     "MAX_BINS",
 ]
 
@@ -115,6 +127,8 @@ _COND_SINGULAR = 1.0 / np.finfo(np.float64).eps
 #: the binned methods refuse more distance bins than this (memory m x n, Tikhonov O(n^3)): a failure says so
 MAX_BINS = 1500
 _Z95 = 1.959963984540054
+_JAC_STEP = 6e-6  # central-difference step of the fit Jacobians (~eps^(1/3), relative to max(1, |theta|))
+_GOLDEN_ITERS = 24  # profile scan: bracket 10 x 0.618^24 ~ 1e-4 in log sigma_s' (SSR error ~1e-8 relative)
 
 
 # ---------------------------------------------------------------------------------------------- geometry
@@ -456,6 +470,14 @@ def _failure(message: str, method: str, model: str, eta: float, t0: float, **ext
 FAR_FIELD_MODES: tuple[str, ...] = ("auto", "exact", "clustered")
 #: far_field="auto" sums pairs exactly up to this many (observation, source) pairs, else clusters the sources
 EXACT_PAIR_BUDGET = 1_000_000
+#: the binned methods ("pinv", "tikhonov") sum every pair up to this many (observation, source) pairs: their W is
+#: ill-conditioned (cond ~1e4-1e5 for pinv), so the ~1e-4 clustering error would move their parameters by % (dense
+#: blocks, O(m K) time, ~16 MB of memory per block)
+EXACT_PAIR_BUDGET_BINNED = 40_000_000
+#: default opening ratios of the clustered far field: the direct method (smooth profile, error ~3e-4 of l) and,
+#: above EXACT_PAIR_BUDGET_BINNED, the binned methods (a tighter opening for their ill-conditioned W)
+FAR_FIELD_THETA = 0.35
+FAR_FIELD_THETA_BINNED = 0.2
 # pseudo-source rule of a cluster (per channel, about its c-weighted mean mu and covariance with eigenpairs
 # lambda_1 >= lambda_2 >= lambda_3): along each principal axis a pair of points of total weight C/kappa
 # (kappa = 2.8 for the two main axes, 3.5 for the third) carrying the variance kappa lambda_i and the axis'
@@ -480,6 +502,13 @@ class _ClusterLevel:
     weights: Array  # (N, C, P)
     indptr: NDArray[np.intp]  # CSR: children at the level below (level 0: member sources)
     items: NDArray[np.intp]
+    # traversal layout: cells that may be accepted (more members than pseudo-sources) have their radius here,
+    # the others inf; pseudo-sources (N, P C, 3) relative to the hierarchy's origin, their squared norms and
+    # weights (N, P C) in the order (pseudo-source, channel)
+    radius_accept: Array = field(default=None)  # type: ignore[assignment]
+    pts: Array = field(default=None)  # type: ignore[assignment]
+    pts_sq: Array = field(default=None)  # type: ignore[assignment]
+    pts_w: Array = field(default=None)  # type: ignore[assignment]
 
 
 def _csr_gather(indptr: NDArray[np.intp], items: NDArray[np.intp], ids: NDArray[np.intp]
@@ -513,6 +542,7 @@ class _SourceClusters:
         self.c_k = c_k
         k_src, self.n_ch = c_k.shape
         origin = centers.min(0)
+        self.origin = centers.mean(0)  # coordinates of the pseudo-source distances (|x|^2 - 2 x.p + |p|^2)
         self.levels: list[_ClusterLevel] = []
         prev_inv: NDArray[np.intp] | None = None
         n_prev = 0
@@ -580,7 +610,11 @@ class _SourceClusters:
                 weights[:, c, 2 * q + 1] = total / kappa * (1.0 - frac_plus)
         off = points - ctr[:, None, None, :]
         radius = np.maximum(radius, np.sqrt(np.einsum("ncpa,ncpa->ncp", off, off)).reshape(n, -1).max(axis=1))
-        return _ClusterLevel(ctr, radius, counts.astype(np.intp), points, weights, indptr, items)
+        pts = points.transpose(0, 2, 1, 3).reshape(n, _N_PSEUDO * self.n_ch, 3) - self.origin
+        return _ClusterLevel(ctr, radius, counts.astype(np.intp), points, weights, indptr, items,
+                             radius_accept=np.where(counts > _N_PSEUDO, radius, np.inf), pts=pts,
+                             pts_sq=np.einsum("npa,npa->np", pts, pts),
+                             pts_w=np.ascontiguousarray(weights.transpose(0, 2, 1)).reshape(n, -1))
 
     @property
     def extent_points(self) -> Array:
@@ -589,39 +623,58 @@ class _SourceClusters:
 
     def far_terms(self, obs: Array, rho: float, cutoff: float, theta: float, chunk: int
                   ) -> Iterator[tuple[int, NDArray[np.intp], Array, Array]]:
-        """Yield (row start, rows within the chunk, distances (T, C), weights (T, C)) of the far field.
+        """Yield (row start, rows within the chunk, squared distances (T, C), weights (T, C)) of the far field.
 
         Every source with rho < d <= cutoff from an observation enters exactly once: either inside an accepted
         cell (as that cell's pseudo-sources) or as a direct point term (cells opened down to level 0). Cells
         with no more members than pseudo-sources are always opened (direct terms are cheaper and exact).
+        The tests compare squared distances (no square roots in the traversal).
         """
         top = self.levels[-1]
         n_top = top.centers.shape[0]
         n_ch = self.n_ch
+        rho2 = rho * rho
+        th2 = theta * theta
+        finite_cut = bool(np.isfinite(cutoff))
+        obs_rel = obs - self.origin
+        obs_sq = np.einsum("ia,ia->i", obs_rel, obs_rel)
         for s in range(0, obs.shape[0], chunk):
             xs = obs[s:s + chunk]
+            xr, xsq = obs_rel[s:s + chunk], obs_sq[s:s + chunk]
             j = np.repeat(np.arange(xs.shape[0]), n_top)
             kk = np.tile(np.arange(n_top), xs.shape[0])
             for lev in reversed(self.levels):
-                diff = xs[j] - lev.centers[kk]
-                dc = np.sqrt(np.einsum("ia,ia->i", diff, diff))
-                r = lev.radius[kk]
-                live = dc - r <= cutoff
-                acc = live & (dc - r > rho) & (r <= theta * dc) & (dc + r <= cutoff) & (lev.counts[kk] > _N_PSEUDO)
+                diff = xs[j]
+                diff -= lev.centers[kk]
+                dc2 = np.einsum("ia,ia->i", diff, diff)
+                # accepted: r <= theta dc, dc - r > rho, dc + r <= cutoff (squared forms; r = inf for cells with
+                # no more members than pseudo-sources, which are always opened)
+                ra = lev.radius_accept[kk]
+                acc = ra * ra <= th2 * dc2
+                acc &= dc2 > (rho + ra) ** 2
+                if finite_cut:
+                    r = lev.radius[kk]
+                    live = dc2 <= (cutoff + r) ** 2
+                    acc &= live & (dc2 <= np.maximum(cutoff - r, 0.0) ** 2) & (cutoff >= r)
+                    op = live & ~acc
+                else:
+                    op = ~acc
                 if acc.any():
                     ja, ka = j[acc], kk[acc]
-                    dp = xs[ja][:, None, None, :] - lev.points[ka]
-                    dist = np.sqrt(np.einsum("icpa,icpa->ipc", dp, dp)).reshape(-1, n_ch)
-                    wts = lev.weights[ka].transpose(0, 2, 1).reshape(-1, n_ch)
-                    yield s, np.repeat(ja, _N_PSEUDO), dist, wts
-                op = live & ~acc
+                    # |x - p|^2 = |x|^2 - 2 x.p + |p|^2 about the hierarchy's centre (no (T, P, 3) temporary)
+                    dist2 = np.einsum("ia,ipa->ip", xr[ja], lev.pts[ka])
+                    dist2 *= -2.0
+                    dist2 += lev.pts_sq[ka]
+                    dist2 += xsq[ja][:, None]
+                    yield s, np.repeat(ja, _N_PSEUDO), dist2.reshape(-1, n_ch), lev.pts_w[ka].reshape(-1, n_ch)
                 rep, kk = _csr_gather(lev.indptr, lev.items, kk[op])
                 j = j[op][rep]
-            diff = xs[j] - self.centers[kk]
-            d = np.sqrt(np.einsum("ia,ia->i", diff, diff))
-            far = (d > rho) & (d <= cutoff)
+            diff = xs[j]
+            diff -= self.centers[kk]
+            d2 = np.einsum("ia,ia->i", diff, diff)
+            far = (d2 > rho2) & (d2 <= cutoff * cutoff)
             if far.any():
-                yield s, j[far], np.repeat(d[far, None], n_ch, axis=1), self.c_k[kk[far]]
+                yield s, j[far], np.broadcast_to(d2[far, None], (int(far.sum()), n_ch)), self.c_k[kk[far]]
 
 
 # ---------------------------------------------------------------------------------------------- pair geometry
@@ -709,20 +762,44 @@ class _Geometry:
                 out[c] += np.bincount(flat, (sign * wt * e_k[pos, c, None]).ravel(), minlength=self.m * n)
         return [o.reshape(self.m, n) for o in out]
 
-    def far_terms(self, chunk: int | None = None) -> Iterator[tuple[int, NDArray[np.intp], Array, Array]]:
-        """Yield (row start, rows within the chunk, distances (T, C), weights (T, C)) of all far terms."""
+    def far_terms(self, chunk: int | None = None) -> Iterator[tuple[int, NDArray[np.intp] | None, Array, Array]]:
+        """Yield (row start, rows within the chunk, squared distances, weights) of all far terms.
+
+        Clustered / KD-tree pairs: rows (T,), squared distances and weights (T, C). Exact dense blocks: rows
+        None, squared distances (rows, K) and weights (rows, K) (channel 0; :meth:`far_matrices` takes the other
+        channels from ``c_k``), zero for the near pairs.
+        """
         n_ch = self.c_k.shape[1]
         if self.clusters is not None:
             cut = np.inf if self.dense else self.cutoff
             gen = self.clusters.far_terms(self.obs, self.rho, cut, self.theta, chunk or 1024)
+        elif self.dense:
+            gen = self._dense_blocks()
         else:
-            gen = ((sl.start, j - sl.start, np.repeat(d[:, None], n_ch, axis=1), self.c_k[k])
+            gen = ((sl.start, j - sl.start, np.repeat(d[:, None] ** 2, n_ch, axis=1), self.c_k[k])
                    for sl, j, k, d in self._exact_pairs())
-        for s, rows, dist, w in gen:
-            if rows.size:
-                self.d_max = max(self.d_max, float(dist.max()))
+        for s, rows, dist2, w in gen:
+            if rows is None:
+                far = dist2 > self.rho * self.rho
+                n_far = int(far.sum())
+                if n_far:
+                    self.d_max = max(self.d_max, float(np.sqrt(dist2.max())))
+                    self.n_far_terms += n_far
+            elif rows.size:
+                self.d_max = max(self.d_max, float(np.sqrt(dist2.max())))
                 self.n_far_terms += rows.size
-            yield s, rows, dist, w
+            yield s, rows, dist2, w
+
+    def _dense_blocks(self) -> Iterator[tuple[int, None, Array, Array]]:
+        """Dense (rows, K) blocks of squared distances (near pairs moved to rho, weight 0) and weights."""
+        m, k_src = len(self.obs), len(self.centers)
+        step = max(1, min(4096, 2_000_000 // max(k_src, 1)))
+        rho2 = self.rho * self.rho
+        for s in range(0, m, step):
+            d2 = cdist(self.obs[s:s + step], self.centers, "sqeuclidean")
+            near = d2 <= rho2
+            d2[near] = rho2
+            yield s, None, d2, np.where(near, 0.0, self.c_k[None, :, 0])
 
     def _exact_pairs(self) -> Iterator[tuple[slice, NDArray[np.intp], NDArray[np.intp], Array]]:
         """Every (j, k, d) with rho < d <= cutoff: dense blocks of cdist or KD-tree pairs (with a cutoff)."""
@@ -744,30 +821,69 @@ class _Geometry:
     def far_matrices(self, n_nodes: int, basis: Any) -> list[Array]:
         """W_c (m, n_nodes) = sum over far terms of weight x basis(distance), one dense matrix per channel.
 
-        ``basis(d, base, weight)`` returns the flat indices base + node and the values weight x basis weight of
-        every (term, node) entry (see :func:`_hat_basis`, :func:`_cubic_log_basis`).
+        ``basis.accumulate(d2, rows, weight, n_rows)`` returns the (n_rows, n_nodes) sum of weight x basis
+        weights of the terms (squared distances ``d2``) in each row (see :func:`_hat_basis`,
+        :func:`_cubic_log_basis`).
         """
         n_ch = self.c_k.shape[1]
         acc = [np.zeros((self.m, n_nodes)) for _ in range(n_ch)]
-        for s, rows, dist, w in self.far_terms():
+        for s, rows, d2, w in self.far_terms():
+            if rows is None:  # dense block: every source, near pairs with weight 0
+                nr, k_src = d2.shape
+                rr = np.repeat(np.arange(nr), k_src)
+                prep = basis.prepare(d2.ravel(), rr)
+                for c in range(n_ch):
+                    wc = w if c == 0 else np.where(w != 0, self.c_k[None, :, c], 0.0)
+                    acc[c][s:s + nr] += basis.accumulate(prep, wc.ravel(), nr)
+                continue
             if rows.size == 0:
                 continue
             nr = int(rows.max()) + 1
-            base = rows * n_nodes
+            shared = n_ch > 1 and d2.strides[1] == 0  # point terms: the same distance in every channel
+            prep = basis.prepare(d2[:, 0], rows) if (shared or n_ch == 1) else None
             for c in range(n_ch):
-                flat, vals = basis(dist[:, c], base, w[:, c])
-                acc[c][s:s + nr] += np.bincount(flat, vals, minlength=nr * n_nodes).reshape(nr, n_nodes)
+                pc = prep if prep is not None else basis.prepare(d2[:, c], rows)
+                acc[c][s:s + nr] += basis.accumulate(pc, w[:, c], nr)
         return acc
 
 
-def _hat_basis(nodes: Array) -> Any:
+class _HatBasis:
     """Mukaigawa Eq. 19-23 as a basis for :meth:`_Geometry.far_matrices`: a distance d between nodes i and i+1
-    puts weight beta on node i and 1 - beta on node i+1."""
-    def basis(d: Array, base: NDArray[np.intp], weight: Array) -> tuple[NDArray[np.intp], Array]:
-        i, beta = quantization_weights(d, nodes)
-        flat = base + i
-        return np.concatenate([flat, flat + 1]), np.concatenate([beta * weight, (1.0 - beta) * weight])
-    return basis
+    puts weight beta on node i and 1 - beta on node i+1 (uniform nodes from 0: i = floor(d / bin), clipped as in
+    :func:`quantization_weights`). Accumulated as two moments per (row, interval): sum w and sum w (1 - beta)."""
+
+    def __init__(self, nodes: Array) -> None:
+        self.nodes = np.asarray(nodes, dtype=np.float64)
+        self.n = self.nodes.size
+        step = np.diff(self.nodes)
+        self.uniform = bool(self.nodes[0] == 0.0 and np.allclose(step, step[0], rtol=1e-12, atol=0.0))
+
+    def prepare(self, d2: Array, rows: NDArray[np.intp]) -> tuple[NDArray[np.intp], Array]:
+        d = np.sqrt(d2)
+        n = self.n
+        if self.uniform:
+            h = float(self.nodes[1])
+            i = np.minimum((d * (1.0 / h)).astype(np.intp), n - 2)
+        else:
+            i = np.clip(np.searchsorted(self.nodes, d, side="right") - 1, 0, n - 2)
+        x0 = self.nodes[i]
+        frac = np.clip((d - x0) / (self.nodes[i + 1] - x0), 0.0, 1.0)  # = 1 - beta
+        i += rows * n
+        return i, frac
+
+    def accumulate(self, prep: tuple[NDArray[np.intp], Array], weight: Array, n_rows: int) -> Array:
+        flat, frac = prep
+        size = n_rows * self.n
+        m0 = np.bincount(flat, weight, minlength=size)
+        m1 = np.bincount(flat, weight * frac, minlength=size)
+        out = m0 - m1
+        out[1:] += m1[:-1]  # (1 - beta) w goes to node i + 1 (i <= n - 2: same row)
+        return out.reshape(n_rows, self.n)
+
+
+def _hat_basis(nodes: Array) -> _HatBasis:
+    """The published linear-interpolation weights (Eq. 19-23) as a far-field basis (:class:`_HatBasis`)."""
+    return _HatBasis(nodes)
 
 
 def _log_grid(lo: float, hi: float, ratio: float = _NODE_RATIO) -> Array:
@@ -777,26 +893,41 @@ def _log_grid(lo: float, hi: float, ratio: float = _NODE_RATIO) -> Array:
     return lo * ratio ** np.arange(n)
 
 
-def _cubic_log_basis(nodes: Array) -> Any:
-    """4-point Lagrange interpolation in log r on log-uniform ``nodes``: r -> (indices (T, 4), weights (T, 4)).
+class _CubicLogBasis:
+    """4-point Lagrange interpolation in log r on log-uniform ``nodes``.
 
     Exact for cubics in log r; for the dipole profile and its disk integral on a 4 % grid the relative error of
     the pair sums is <= 3e-5 (measured against estimation.forward for marble, ketchup, cream, skin; the error term
-    is h^4 f''''/24 with h = log 1.04). Points outside the grid are extrapolated from the end
-    intervals (the callers keep them inside).
-    """
-    log0 = float(np.log(nodes[0]))
-    inv_h = 1.0 / float(np.log(nodes[1] / nodes[0]))
-    n = nodes.size
+    is h^4 f''''/24 with h = log 1.04). Points outside the grid are extrapolated from the end intervals (the
+    callers keep them inside).
 
-    def weights(r: Array) -> tuple[NDArray[np.intp], Array]:
-        t = np.log(r)
-        t -= log0
-        t *= inv_h
+    ``basis(r)`` gives (node indices (T, 4), Lagrange weights (T, 4)). For the far-field sums
+    (:meth:`_Geometry.far_matrices`) the weights are never formed: the four Lagrange weights of a term are cubic
+    polynomials of its offset v in the interval, so per (row, interval) it suffices to accumulate the moments
+    sum w v^p (p = 0..3, four bincounts) and map them once to the four nodes (4 x 4 matrix, exact algebra).
+    """
+
+    _V = np.array([-1.5, -0.5, 0.5, 1.5])  # node offsets from the interval centre (u - 1.5, u = 0..3)
+    _COEF = np.linalg.inv(np.vander(_V, 4, increasing=True))  # L_q(v) = sum_p _COEF[p, q] v^p
+
+    def __init__(self, nodes: Array) -> None:
+        self.nodes = np.asarray(nodes, dtype=np.float64)
+        self.n = self.nodes.size
+        self.log0 = float(np.log(self.nodes[0]))
+        self.inv_h = 1.0 / float(np.log(self.nodes[1] / self.nodes[0]))
+
+    def _index(self, log_r: Array) -> tuple[NDArray[np.intp], Array]:
+        """(first node i, offset u = t - i) with t = (log r - log r_0)/h, i = floor(t) - 1 clipped."""
+        t = log_r - self.log0
+        t *= self.inv_h
         i = np.floor(t).astype(np.intp)
         i -= 1
-        np.clip(i, 0, n - 4, out=i)
-        u = t - i
+        np.clip(i, 0, self.n - 4, out=i)
+        t -= i
+        return i, t
+
+    def __call__(self, r: Array) -> tuple[NDArray[np.intp], Array]:
+        i, u = self._index(np.log(r))
         a, b, c = u - 1.0, u - 2.0, u - 3.0
         w = np.empty((r.size, 4))
         bc = b * c
@@ -809,18 +940,37 @@ def _cubic_log_basis(nodes: Array) -> Any:
         w[:, 2] *= -0.5
         np.multiply(ua, b, out=w[:, 3])
         w[:, 3] *= 1.0 / 6.0
-        return i, w
+        return i[:, None] + np.arange(4), w
 
-    def basis(r: Array, base: NDArray[np.intp] | None = None, weight: Array | None = None
-              ) -> tuple[NDArray[np.intp], Array]:
-        """(flat indices base + node (T*4,), values weight x Lagrange weight (T*4,)); without ``base``:
-        (node indices (T, 4), Lagrange weights (T, 4))."""
-        i, w = weights(r)
-        if base is None:
-            return i[:, None] + np.arange(4), w
-        w *= weight[:, None]
-        return ((base + i)[:, None] + np.arange(4)).ravel(), w.ravel()
-    return basis
+    def prepare(self, d2: Array, rows: NDArray[np.intp]) -> tuple[NDArray[np.intp], Array, Array, Array]:
+        """Per term: flat index row n + i and the powers v, v^2, v^3 of the centred offset v = u - 1.5."""
+        lg = np.log(d2)
+        lg *= 0.5
+        i, v = self._index(lg)
+        v -= 1.5
+        v2 = v * v
+        i += rows * self.n
+        return i, v, v2, v2 * v
+
+    def accumulate(self, prep: tuple[NDArray[np.intp], Array, Array, Array], weight: Array, n_rows: int) -> Array:
+        flat, v, v2, v3 = prep
+        size = n_rows * self.n
+        mom = np.empty((size, 4))
+        mom[:, 0] = np.bincount(flat, weight, minlength=size)
+        mom[:, 1] = np.bincount(flat, weight * v, minlength=size)
+        mom[:, 2] = np.bincount(flat, weight * v2, minlength=size)
+        mom[:, 3] = np.bincount(flat, weight * v3, minlength=size)
+        z = mom @ self._COEF  # (size, 4): the sums of w L_q(v) per (row, first node)
+        out = z[:, 0].copy()
+        for q in range(1, 4):
+            out[q:] += z[:-q, q]  # node i + q (i <= n - 4: the same row)
+        return out.reshape(n_rows, self.n)
+
+
+def _cubic_log_basis(nodes: Array) -> _CubicLogBasis:
+    """4-point Lagrange interpolation in log r on log-uniform ``nodes`` (:class:`_CubicLogBasis`)."""
+    return _CubicLogBasis(nodes)
+
 
 
 # ---------------------------------------------------------------------------------------------- fitting core
@@ -828,14 +978,14 @@ def _reduce(a: Array, b: Array) -> tuple[Array, Array, float]:
     """QR reduction of min ||a x - b||: (R, Q^T b, ||b - Q Q^T b||^2), or (a, b, 0) when a is not tall.
 
     ||a x - b||^2 = ||R x - Q^T b||^2 + offset for every x, so fits, Jacobians (J^T J) and profile scans on the
-    n x n system are those of the full one at O(n^2) instead of O(m n) per evaluation.
+    n x n system are those of the full one at O(n^2) instead of O(m n) per evaluation. One Householder QR of
+    [a | b] without forming Q (numpy ``mode="r"``): its last column holds Q^T b and the residual norm.
     """
-    if a.shape[0] <= a.shape[1]:
+    m, n = a.shape
+    if m <= n:
         return a, b, 0.0
-    q, r = np.linalg.qr(a)
-    y = q.T @ b
-    res = b - q @ y
-    return r, y, float(res @ res)
+    r = np.linalg.qr(np.column_stack([a, b]), mode="r")
+    return np.ascontiguousarray(r[:n, :n]), r[:n, n].copy(), float(r[n, n] ** 2) if r.shape[0] > n else 0.0
 
 
 class _Problem:
@@ -868,6 +1018,18 @@ class _Problem:
         self.nfev += t.shape[0]
         v = self.vector_fn(t)
         return (v if self.a is None else self.a @ v) - self.b[:, None]
+
+    def jacobian(self, theta: Array) -> Array:
+        """d resid / d theta (n, 2) by central differences, all four points in one batched evaluation."""
+        t = np.asarray(theta, dtype=np.float64)
+        h = _JAC_STEP * np.maximum(1.0, np.abs(t))
+        pts = np.repeat(t[None, :], 4, axis=0)
+        pts[0, 0] += h[0]
+        pts[1, 0] -= h[0]
+        pts[2, 1] += h[1]
+        pts[3, 1] -= h[1]
+        r = self.resid(pts)
+        return np.stack([(r[:, 0] - r[:, 1]) / (2 * h[0]), (r[:, 2] - r[:, 3]) / (2 * h[1])], axis=1)
 
     def ssr(self, theta: Array) -> Array:
         r = self.resid(theta)
@@ -1067,8 +1229,9 @@ def _fit_channel(problem: _Problem, sa_floor: float, n_params_dof: int = 2, know
     x0 = grid[int(np.nanargmin(ssr_grid))]
     best = None
     for start in (x0, np.clip(x0 + np.array([0.0, 2.0]), lb, ub), np.clip(x0 - np.array([0.0, 2.0]), lb, ub)):
-        res = optimize.least_squares(lambda t: problem.resid(t[None, :])[:, 0], start, bounds=(lb, ub),
-                                     method="trf", x_scale=1.0, xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=400)
+        res = optimize.least_squares(lambda t: problem.resid(t[None, :])[:, 0], start, jac=problem.jacobian,
+                                     bounds=(lb, ub), method="trf", x_scale=1.0, xtol=1e-12, ftol=1e-12, gtol=1e-12,
+                                     max_nfev=400)
         if best is None or res.cost < best.cost:
             best = res
     assert best is not None
@@ -1103,7 +1266,7 @@ def _profile_sigma_a(problem: _Problem, theta: Array, ssr_min: float, s2: float,
     def f(x: Array) -> Array:
         return problem.ssr(np.stack([x, grid], axis=1))
 
-    _, prof = _golden_batch(f, lo_s, hi_s)
+    _, prof = _golden_batch(f, lo_s, hi_s, iters=_GOLDEN_ITERS)
     prof = np.minimum(prof, np.where(grid == theta[1], ssr_min, np.inf))
     thresh = ssr_min + _CHI2_1_95 * s2
     inside = prof <= thresh
@@ -1201,7 +1364,7 @@ def estimate_single_image(observed_radiance: ArrayLike, patches: Patches, lights
                           noise_floor: float = 1e-3, sigma_a_floor_per_mm: float = 1e-7, monotone: bool = False,
                           regularization: float | None = None, profile_likelihood: bool = True,
                           identifiable_ratio: float = 10.0, model_error: float = 0.02,
-                          fdr: str = "fit", far_field: str = "auto", far_field_theta: float = 0.35
+                          fdr: str = "fit", far_field: str = "auto", far_field_theta: float | None = None
                           ) -> SingleImageResult:
     """Estimate (sigma_s', sigma_a) per channel from one image (Mukaigawa et al. 2009, and better).
 
@@ -1234,9 +1397,12 @@ def estimate_single_image(observed_radiance: ArrayLike, patches: Patches, lights
         pixel count, not the (spatially correlated) systematic error. 0 gives purely statistical intervals.
     far_field : how the pairs beyond the near field (2 patch spacings) are summed: "exact" (every pair, cost
         O(m K)), "clustered" (Barnes-Hut source clusters with second-moment pseudo-sources, O(m log K); see
-        :class:`_SourceClusters`) or "auto" (exact up to :data:`EXACT_PAIR_BUDGET` pairs, else clustered).
-    far_field_theta : opening ratio of the clustered far field (cluster radius / distance). Default 0.35: rms
-        error of l 0.02-0.04 % (max 0.2 %); 0.5: rms 0.1-0.3 % (max 1.6 %) at ~0.6x the cost.
+        :class:`_SourceClusters`) or "auto" (exact up to :data:`EXACT_PAIR_BUDGET` pairs — for "pinv" and
+        "tikhonov" :data:`EXACT_PAIR_BUDGET_BINNED` — else clustered).
+    far_field_theta : opening ratio of the clustered far field (cluster radius / distance). Default (None):
+        :data:`FAR_FIELD_THETA` = 0.35 for "direct" (rms error of l 0.02-0.04 % on long profiles, ~0.15 % on short
+        ones; 0.5: rms 0.1-0.3 % at ~0.6x the cost), :data:`FAR_FIELD_THETA_BINNED` = 0.2 for the binned methods.
+        "auto" sums every pair for the binned methods up to :data:`EXACT_PAIR_BUDGET_BINNED` pairs.
 
     Returns a :class:`SingleImageResult` (falsy with ``message`` on failure); ``extra`` records the far-field
     mode, the number of far terms and the seconds spent building the system and fitting. Example: the lead's
@@ -1252,7 +1418,7 @@ def estimate_single_image(observed_radiance: ArrayLike, patches: Patches, lights
         raise ValueError("bin_mm must be > 0")
     if far_field not in FAR_FIELD_MODES:
         raise ValueError(f"unknown far_field {far_field!r}; valid: {', '.join(FAR_FIELD_MODES)}")
-    if not 0.0 < far_field_theta < 1.0:
+    if far_field_theta is not None and not 0.0 < far_field_theta < 1.0:
         raise ValueError("far_field_theta must lie in (0, 1)")
     vis = patches.visible_index
     k_all = patches.centers_mm.shape[0]
@@ -1303,6 +1469,12 @@ def estimate_single_image(observed_radiance: ArrayLike, patches: Patches, lights
         spacing = float(np.sqrt(np.median(patches.areas_mm2[patches.areas_mm2 > 0])))
     rho = NEAR_FIELD_SPACINGS * spacing
     r_self = spacing / np.sqrt(np.pi)  # radius of the disk with the median patch area (pinv's self term)
+    binned = method != "direct"
+    if far_field == "auto":
+        budget = EXACT_PAIR_BUDGET_BINNED if binned else EXACT_PAIR_BUDGET
+        far_field = "clustered" if vis.size * k_all > budget else "exact"
+    if far_field_theta is None:
+        far_field_theta = FAR_FIELD_THETA_BINNED if binned else FAR_FIELD_THETA
     geo = _Geometry(patches.centers_mm[vis], patches.centers_mm, patches.areas_mm2, c_k, rho, cutoff_mm,
                     far_field, far_field_theta, spacing)
     notes: list[str] = []
