@@ -18,7 +18,13 @@ Units check (printed): the MC image over ``predict_radiance(model=...)`` at the 
 patches, by distance to the nearest edge. Both are radiance per unit radiant intensity of the light
 (intensity / mm^2 / sr): no constant factor between them (a missing pi would show as 3.14 or 0.32).
 
-Acceptance (issue 8): the best model (``mc-table``) recovers sigma_s' within 10 % and sigma_a within 50 % (or
+Best model: ``mc-table+reference`` (:mod:`estimation.model_correction` with :class:`rig.mc_reference.MonteCarloReference`):
+the mc-table fit corrected by Monte Carlo renders of the known box at the current estimate, through the same
+camera and the same 3x3 window sampling (``--reference-spp``, ``--reference-iterations``). It shares the
+renderer and the analytic box with the frame (the method assumes known geometry) but not the random numbers;
+its seconds include the renders.
+
+Acceptance (issue 8): the best model recovers sigma_s' within 10 % and sigma_a within 50 % (or
 flags sigma_a non-identifiable with an interval containing the truth); the classical dipole's error is printed
 beside it.
 
@@ -43,8 +49,10 @@ import trimesh
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from estimation.camera import PinholeCamera  # noqa: E402
+from estimation.model_correction import estimate_with_reference  # noqa: E402
 from estimation.single_image import PointLights, estimate_single_image, patches_from_mesh, predict_radiance  # noqa: E402
 from rig.estimate import pixel_faces, sample_at_points  # noqa: E402
+from rig.mc_reference import MonteCarloReference  # noqa: E402
 
 TRUTH = (2.19, 0.002)          # marble-R (seed Table 1)
 ETA = 1.3
@@ -53,6 +61,7 @@ MODELS = ("mc-table", "dipole-better", "dipole-jensen")
 CAMERA_MM = (250.0, -300.0, 220.0)
 LIGHT_MM = (350.0, -600.0, 500.0)
 INTENSITY = 1.0e6
+REFERENCE_SEED = 1000          # every reference render uses this seed (common random numbers; the frame uses --seed)
 OUT_DIR = Path(__file__).resolve().parent / "out"
 
 
@@ -97,7 +106,8 @@ def render_frame(size_px: int, spp: int, edge_mm: float, ssp: float, sa: float, 
 
 
 def observations(frame: dict[str, Any], size_px: int, edge_mm: float, patch_mm: float):
-    """Patches of the cube mesh, observed radiance (K, 1) and its standard error, distance to the nearest edge."""
+    """Patches of the cube mesh, observed radiance (K, 1) and its standard error, distance to the nearest edge,
+    and the pixels the observations may use (those a mesh face covers; for the reference renderer)."""
     cam, light = scene(size_px, edge_mm)
     mesh = trimesh.creation.box(extents=(edge_mm,) * 3)
     v, f = trimesh.remesh.subdivide_to_size(mesh.vertices, mesh.faces, max_edge=float(patch_mm))
@@ -114,14 +124,21 @@ def observations(frame: dict[str, Any], size_px: int, edge_mm: float, patch_mm: 
     for a in range(3):
         m = ax != a
         edge[m] = np.minimum(edge[m], edge_mm / 2 - np.abs(c[m, a]))
-    return pat, light, obs, sig, edge
+    return pat, light, obs, sig, edge, faces >= 0
 
 
-def fit_row(model: str, obs, sig, pat, light) -> dict[str, Any]:
+def fit_row(model: str, obs, sig, pat, light, reference=None, iterations: int = 4) -> dict[str, Any]:
     t0 = time.perf_counter()
-    r = estimate_single_image(obs, pat, light, ETA, method="direct", model=model, noise_sigma=sig)
+    if reference is None:
+        r = estimate_single_image(obs, pat, light, ETA, method="direct", model=model, noise_sigma=sig)
+    else:
+        r = estimate_with_reference(obs, pat, light, ETA, reference, noise_sigma=sig, base_model=model,
+                                    max_iterations=iterations, seed=REFERENCE_SEED)
     sec = time.perf_counter() - t0
-    row: dict[str, Any] = {"model": model, "ok": bool(r), "message": r.message, "seconds": sec}
+    row: dict[str, Any] = {"model": r.model, "ok": bool(r), "message": r.message, "seconds": sec}
+    if reference is not None:
+        row.update(steps=r.extra.get("reference"), converged=r.extra.get("converged"),
+                   renders=list(reference.renders))
     if r:
         s, a = float(r.sigma_s_prime_per_mm[0]), float(r.sigma_a_per_mm[0])
         lo, hi = (float(x) for x in r.sigma_a_ci_per_mm[0])
@@ -159,6 +176,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--edge-mask-mm", type=float, default=3.0)
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--no-cache", action="store_true")
+    ap.add_argument("--reference-spp", type=int, help="spp of the reference renders (default 128, --quick 16)")
+    ap.add_argument("--reference-iterations", type=int, help="at most this many reference renders (default 4, "
+                    "--quick 2)")
     args = ap.parse_args(argv)
     size = args.size or (64 if args.quick else 128)
     spp = args.spp or (32 if args.quick else 256)
@@ -174,7 +194,7 @@ def main(argv: list[str] | None = None) -> int:
           f"{fr['paths_per_s']:.3g} paths/s, {fr['mean_collisions']:.1f} collisions/path, truncated "
           f"{fr['truncated_fraction']:.2g}, compile/load {fr['compile_seconds']:.2f} s; per-pixel stderr/radiance "
           f"median {np.median(rel):.2%}, p90 {np.percentile(rel, 90):.2%}")
-    pat, light, obs, sig, edge = observations(fr, size, args.edge_mm, patch)
+    pat, light, obs, sig, edge, valid_px = observations(fr, size, args.edge_mm, patch)
     vis = pat.visible_index
     ok = np.isfinite(obs[vis, 0])
     print(f"patches {len(pat.areas_mm2)} ({vis.size} visible, {int(ok.sum())} observed); window-mean stderr/L "
@@ -199,19 +219,43 @@ def main(argv: list[str] | None = None) -> int:
     print()
     print("## Fits (method='direct', noise_sigma = MC standard error of the window means)\n")
     rows = [fit_row(m, obs, sig, pat, light) for m in MODELS]
+    ref_spp = args.reference_spp or (16 if args.quick else 128)
+    ref_it = args.reference_iterations or (2 if args.quick else 4)
+    h = args.edge_mm / 2
+    from simulators.mc import Box
+
+    cam, _ = scene(size, args.edge_mm)
+    reference = MonteCarloReference(Box((-h, -h, -h), (h, h, h)), cam, light, pat, spp=ref_spp,
+                                    valid_px=valid_px)
+    best = fit_row("mc-table", obs, sig, pat, light, reference=reference, iterations=ref_it)
+    rows.insert(0, best)
     print_rows(rows)
     out["rows"] = rows
-    best, classical = rows[0], rows[2]
+    classical = rows[3]
+    print(f"\nmc-table+reference: analysis by synthesis (estimation.model_correction) — the mc-table fit corrected "
+          f"by Monte Carlo renders of the known box at the current estimate ({ref_spp} spp, seed "
+          f"{REFERENCE_SEED} for every render, independent of the frame's seed {args.seed}), at most {ref_it} "
+          f"renders (step 0: the plain mc-table fit; change: |F(p) - p| of the step):\n")
+    print("| step | sigma_s' /mm | err | sigma_a /mm | err | kappa median | kappa p05-p95 | render s | change |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for st in best.get("steps") or []:
+        s0, a0 = st["sigma_s_prime_per_mm"][0], st["sigma_a_per_mm"][0]
+        print(f"| {st['iteration']} | {s0:.4g} | {s0 / TRUTH[0] - 1:+.1%} | {a0:.4g} | {a0 / TRUTH[1] - 1:+.1%} | "
+              f"{st['kappa_median'][0]:.3f} | {st['kappa_p05'][0]:.3f}-{st['kappa_p95'][0]:.3f} | "
+              f"{st['render_seconds']:.1f} | {st['change']:.1%} |")
+    rps = [r["paths_per_s"] for r in best.get("renders") or []]
+    if rps:
+        print(f"\nreference renders: {len(rps)}, {np.median(rps):.3g} paths/s (median)")
     print()
     print(f"## Same fits with observations within {args.edge_mask_mm:g} mm of a cube edge masked\n")
     far = edge >= args.edge_mask_mm
     obs_m, sig_m = np.where(far[:, None], obs, np.nan), np.where(far[:, None], sig, np.nan)
-    rows_m = [fit_row(m, obs_m, sig_m, pat, light) for m in MODELS]
+    rows_m = [fit_row(m, obs_m, sig_m, pat, light) for m in MODELS]  # fast models only
     print_rows(rows_m)
     out["rows_edge_masked"] = rows_m
     print()
     if best["ok"]:
-        print(f"ACCEPTANCE (best model mc-table, all observations): {'PASS' if best['accept'] else 'FAIL'} — "
+        print(f"ACCEPTANCE (best model {best['model']}, all observations): {'PASS' if best['accept'] else 'FAIL'} — "
               f"sigma_s' {best['err_sigma_s_prime']:+.1%} (tol {TOL_SSP:.0%}), sigma_a {best['err_sigma_a']:+.1%} "
               f"(tol {TOL_SA:.0%}; interval {best['sigma_a_ci'][0]:.3g}-{best['sigma_a_ci'][1]:.3g}, identifiable "
               f"{best['identifiable']}); classical dipole (dipole-jensen): sigma_s' "
