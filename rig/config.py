@@ -151,6 +151,8 @@ class EstimationConfig:
     single_image_subdivisions: int
     eta: float
     complements: bool = False      # gradients as x, y, z + complements instead of full + x, y, z
+    single_image_model: str = "dipole-jensen"   # profile model of the single-image fit (estimation.single_image)
+    compare_models: bool = True    # also fit every other profile model and report them side by side
 
 
 @dataclass(frozen=True)
@@ -407,7 +409,10 @@ def parse_config(data: dict[str, Any], file: str = "<memory>") -> RigConfig:
         single_image_method=e.str("single_image_method", "direct"),
         single_image_subdivisions=e.int("single_image_subdivisions", 3, lo=1, hi=6),
         eta=e.num("eta", 1.3, lo=1.0, hi=3.0),
-        complements=e.bool("complements", False))
+        complements=e.bool("complements", False),
+        single_image_model=e.str("single_image_model", "dipole-jensen",
+                                 choices=("mc-table", "dipole-better", "dipole-jensen")),
+        compare_models=e.bool("compare_models", True))
     name = top.section("rig").str("name")
     return RigConfig(name, sphere, trigger, camera, station, tuple(targets), obj, scene, estimation, file)
 

@@ -81,6 +81,24 @@ def format_table(result: dict[str, Any]) -> str:
         err = "-" if r["error"] is None else f"{100 * r['error']:+.1f}%"
         lines.append(f"{r['quantity']:<34} {truth:>10} {est:>10} {err:>9} {r['seconds']:>8.2f}")
     lines.append("")
+    model_rows = result.get("model_rows") or []
+    if model_rows:
+        names = list(model_rows[0]["models"])
+        lines.append("single-image, every profile model (estimate, error vs truth):")
+        head2 = f"{'quantity':<20} {'truth':>9} " + " ".join(f"{n:>22}" for n in names)
+        lines += [head2, "-" * len(head2)]
+        for r in model_rows:
+            truth = "-" if r["truth"] is None else f"{r['truth']:.4g}"
+            cells = []
+            for n in names:
+                m = r["models"][n]
+                if m["estimate"] is None:
+                    cells.append(f"{'failed':>22}")
+                else:
+                    err = "" if m["error"] is None else f" ({100 * m['error']:+.1f}%)"
+                    cells.append(f"{m['estimate']:.4g}{err}".rjust(22))
+            lines.append(f"{r['quantity']:<20} {truth:>9} " + " ".join(cells))
+        lines.append("")
     for label, sec in result["timings_s"].items():
         lines.append(f"{label:<34} {sec:>8.2f} s")
     for note in result.get("notes", []):

@@ -376,10 +376,26 @@ def run_single_image(frames: _Frames, manifest: dict[str, Any], surveys: dict[st
     sigma *= 2.0
     eta = float(cfg["estimation"]["eta"])
     ch = requested_channels(manifest)
-    res = estimate_single_image(obs[:, ch], patches, PointLights(light_pos[None, :], intensity[None, ch]), eta,
-                                method=method or cfg["estimation"]["single_image_method"],
-                                noise_sigma=sigma[:, ch])
+    lights = PointLights(light_pos[None, :], intensity[None, ch])
+    est_cfg = cfg["estimation"]
+    model = est_cfg.get("single_image_model", "dipole-jensen")
+    meth = method or est_cfg["single_image_method"]
+    res = estimate_single_image(obs[:, ch], patches, lights, eta, method=meth, model=model, noise_sigma=sigma[:, ch])
     seconds = time.perf_counter() - t0
+    comparison: dict[str, Any] = {}
+    if est_cfg.get("compare_models", True) and method is None:
+        from estimation.single_image import MODELS_ALL
+
+        for other in MODELS_ALL:
+            t1 = time.perf_counter()
+            r = res if other == model else estimate_single_image(obs[:, ch], patches, lights, eta, method=meth,
+                                                                  model=other, noise_sigma=sigma[:, ch])
+            comparison[other] = {
+                "success": bool(r), "message": r.message, "channels": ["RGB"[i] for i in ch],
+                "seconds": seconds if other == model else time.perf_counter() - t1,
+                "sigma_s_prime_per_mm": _expand_channels(r.sigma_s_prime_per_mm, ch) if r else None,
+                "sigma_a_per_mm": _expand_channels(r.sigma_a_per_mm, ch) if r else None,
+                "model_bias": r.extra.get("model_bias")}
     out: dict[str, Any] = {"estimator": "single-image", "success": bool(res), "message": res.message,
                            "method": res.method, "model": res.model, "eta": eta, "seconds": seconds,
                            "inputs": {"frame": manifest_frame(frames, "key"), "light_mm": light_pos.tolist(),
@@ -391,6 +407,8 @@ def run_single_image(frames: _Frames, manifest: dict[str, Any], surveys: dict[st
                              light_intensity=intensity.tolist(),
                              calibration=cal.provenance(used))
     out["channels"] = ["RGB"[i] for i in ch]
+    if comparison:
+        out["models"] = comparison
     if res:
         out.update({key: _expand_channels(getattr(res, key), ch) for key in (
             "sigma_s_prime_per_mm", "sigma_a_per_mm", "R_d", "l_d_mm", "D_mm", "sigma_s_prime_ci_per_mm",
@@ -577,6 +595,27 @@ def _rows(name: str, est: dict[str, Any], truth: dict[str, Any] | None) -> list[
     return rows
 
 
+def _model_rows(est: dict[str, Any], truth: dict[str, Any] | None) -> list[dict[str, Any]]:
+    """The single-image fit of every profile model side by side: one row per (quantity, channel) with the truth
+    and, per model, the estimate and its relative error (None where a model failed or has no truth)."""
+    models = est.get("models") or {}
+    rows: list[dict[str, Any]] = []
+    for key, label in (("sigma_s_prime_per_mm", "sigma_s' [1/mm]"), ("sigma_a_per_mm", "sigma_a [1/mm]")):
+        tvals = None if not truth else truth[key]
+        for c, ch in enumerate("RGB"):
+            if ch not in est.get("channels", "RGB"):
+                continue
+            t = None if tvals is None else float(tvals[c])
+            per: dict[str, Any] = {}
+            for name, m in models.items():
+                vals = m.get(key)
+                v = None if not vals or vals[c] is None or not np.isfinite(vals[c]) else float(vals[c])
+                per[name] = {"estimate": v, "error": None if (v is None or not t) else (v - t) / t,
+                             "seconds": m.get("seconds")}
+            rows.append({"quantity": f"{label} {ch}", "truth": t, "models": per})
+    return rows
+
+
 def _derived_truth(key: str, truth: dict[str, Any]) -> list[float] | None:
     from estimation.dipole import diffusion_coefficient_mm, total_diffuse_reflectance
     ssp = np.asarray(truth["sigma_s_prime_per_mm"], float)
@@ -620,6 +659,11 @@ def estimate_session(root: str | Path, *, calibration: str | os.PathLike[str] | 
         say(f"single-image estimate: {est['seconds']:.2f} s")
         results["single-image"] = est
         rows += _rows("single-image", est, truth)
+        model_rows = _model_rows(est, truth)
+        if model_rows and truth:
+            notes.append(f"single-image models: the simulated frames were rendered with "
+                         f"{truth.get('renderer', 'the Jensen dipole (fast renderer)')}; the model that renderer "
+                         f"uses is favoured here (Monte Carlo frames: benchmarks/mc_single_image.py)")
         if est.get("success") and not all(v for v in est["sigma_a_identifiable"] if v is not None):
             notes.append("single-image: sigma_a not identifiable in some channels; "
                          + est.get("identifiability_reason", ""))
@@ -629,4 +673,7 @@ def estimate_session(root: str | Path, *, calibration: str | os.PathLike[str] | 
                 notes.append(f"single-image: key light at {li}")
     if cal is not None:
         notes.append(f"calibrated with {cal.file} revision {cal.cal.doc['revision']} ({cal.source})")
-    return {"rows": rows, "notes": notes, "estimates": results}
+    out: dict[str, Any] = {"rows": rows, "notes": notes, "estimates": results}
+    if frames.has("key") and model_rows:
+        out["model_rows"] = model_rows
+    return out

@@ -50,6 +50,16 @@ def test_demo_end_to_end_json(tmp_path):
     for c, (lo, hi) in enumerate(si["sigma_a_ci_per_mm"]):
         assert lo <= truth_sa[c] <= hi, (c, lo, hi)
     assert all(np.isfinite(r["seconds"]) and r["seconds"] >= 0 for r in result["rows"])
+    # every profile model side by side with the truth (issue 8 item 4); the simulated camera renders with the
+    # Jensen dipole, so that model's row equals the main estimate and the others differ by their model bias
+    mrows = {r["quantity"]: r for r in result["model_rows"]}
+    for ch in "RGB":
+        per = mrows[f"sigma_s' [1/mm] {ch}"]["models"]
+        assert set(per) == {"dipole-jensen", "dipole-better", "mc-table"}
+        assert per["dipole-jensen"]["estimate"] == rows[f"single-image sigma_s' [1/mm] {ch}"]["estimate"]
+        assert all(m["error"] is not None and np.isfinite(m["error"]) for m in per.values())
+    assert set(si["models"]) == {"dipole-jensen", "dipole-better", "mc-table"}
+    assert si["model"] == "dipole-jensen"
 
     # the session is complete, journalled and verifiable; estimators wrote their JSON
     s = Session.open(tmp_path / "sessions" / "e2e")
