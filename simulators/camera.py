@@ -5,6 +5,10 @@ each fire it snapshots the light state (what the sensor integrates during the ex
 worker thread and writes ``frame_NNNNN.dng`` atomically into ``drop_folder``, as tethering software would:
 the folder-watching camera driver picks it up. Noise: Poisson photon noise (``electrons_per_dn``) plus
 Gaussian read noise, on each photosite of an RGGB mosaic; 14-bit DNG with a black level.
+
+``render_mode``: "fast" (default; the Jensen dipole, :func:`simulators.scene.render_object`) or "mc" (the
+subsurface light by Monte Carlo, :mod:`simulators.mc_capture`, options ``mc``; seeded by ``mc.seed``, so a frame
+re-taken is the same frame). The last shot's Monte Carlo standard error is kept in ``last_stderr``.
 """
 from __future__ import annotations
 
@@ -21,6 +25,7 @@ from drivers.contracts import Polarization
 from estimation.camera import PinholeCamera
 
 from .dng import write_cfa_dng
+from .mc_capture import MCSettings, check_render_mode
 from .scene import SceneObject, render_object
 
 
@@ -59,8 +64,11 @@ class SimulatedCamera:
 
     def __init__(self, obj: SceneObject, camera: PinholeCamera, led_positions_mm: npt.ArrayLike,
                  led_intensity: npt.ArrayLike, drop_folder: str | Path, sensor: SensorModel,
-                 *, seed: int = 0) -> None:
+                 *, seed: int = 0, render_mode: str = "fast", mc: MCSettings | None = None) -> None:
         self.obj = obj
+        self.render_mode = check_render_mode(render_mode)
+        self.mc = mc if mc is not None else MCSettings(seed=int(seed))
+        self.last_stderr: npt.NDArray[np.float64] | None = None   # "mc": radiance stderr of the last render
         self.camera = camera
         self.led_positions_mm = np.asarray(led_positions_mm, float)
         self.led_intensity = np.asarray(led_intensity, float)
@@ -105,7 +113,8 @@ class SimulatedCamera:
     def render_raw(self, emission: npt.ArrayLike, polarization: Polarization, exposure_s: float
                    ) -> npt.NDArray[np.uint16]:
         res = render_object(self.obj, self.camera, self.led_positions_mm, np.asarray(emission, float),
-                     polarization)
+                            polarization, render_mode=self.render_mode, mc=self.mc)
+        self.last_stderr = res.stderr
         return expose(res.radiance, exposure_s, self.sensor, self.shot_rng(emission, polarization, exposure_s))
 
     def _work(self) -> None:

@@ -8,10 +8,15 @@ light is depolarized, specular keeps the source polarization, so cross = diffuse
 parallel = diffuse/2 + specular; without polarizers the camera sees diffuse + specular.
 
 The renderer's tessellation is finer than the estimators' so tests do not commit the inverse crime.
+
+``render_mode="mc"`` (:func:`render_object`, :func:`render_gradient_capture`, ``SimulatedCamera``) replaces the
+dipole by a Monte Carlo random walk in the object (:mod:`simulators.mc_capture`; exact transport, seeded, with a
+standard error), keeping the cameras, LEDs, polarization and GGX lobe of the fast path.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 import numpy.typing as npt
@@ -21,6 +26,9 @@ from drivers.contracts import Polarization
 from estimation.camera import PinholeCamera, intersect_sphere
 from estimation.forward import diffuse_exitance
 from estimation.fresnel import fresnel_reflectance, fresnel_transmittance
+
+if TYPE_CHECKING:
+    from .mc_capture import MCSettings
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -106,14 +114,18 @@ def specular_radiance(points_mm: FloatArray, normals: FloatArray, view: FloatArr
 class RenderResult:
     radiance: FloatArray          # (H, W, 3), camera-side radiance in rig units
     mask: npt.NDArray[np.bool_]   # object pixels
+    # render_mode "mc": the Monte Carlo standard error of ``radiance`` (H, W, 3) (the specular lobe is exact);
+    # None for "fast"
+    stderr: FloatArray | None = None
 
 
 def render(obj: SphereObject, camera: PinholeCamera, led_positions_mm: FloatArray,
            led_radiant_intensity: FloatArray, polarization: Polarization,
-           *, include_specular: bool = True) -> RenderResult:
+           *, include_specular: bool = True, render_mode: str = "fast",
+           mc: "MCSettings | None" = None) -> RenderResult:
     """Radiance image of ``obj`` lit by the LEDs' current emission (N, 3) (:func:`render_object` on a sphere)."""
     return render_object(obj, camera, led_positions_mm, led_radiant_intensity, polarization,
-                         include_specular=include_specular)
+                         include_specular=include_specular, render_mode=render_mode, mc=mc)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -373,28 +385,56 @@ def _exitance(obj: SceneObject, points_mm: FloatArray, led_positions_mm: FloatAr
     return obj.exitance(points_mm, led_positions_mm, emissions)
 
 
+def _mc_diffuse(obj: SceneObject, camera: PinholeCamera, led_positions_mm: FloatArray,
+                emission: FloatArray, hit: npt.NDArray[np.bool_], mc: "MCSettings | None"
+                ) -> tuple[FloatArray, FloatArray]:
+    """Monte Carlo subsurface radiance and its standard error at the ``hit`` pixels, (P, 3) each (0 where the
+    Monte Carlo shape misses a pixel the analytic intersection hits: a silhouette pixel)."""
+    from .mc_capture import MCSettings, render_mc_leds
+
+    im, _ = render_mc_leds(obj, camera, led_positions_mm, emission, mc or MCSettings())
+    return im.radiance[hit], im.stderr[hit]
+
+
 def render_object(obj: SceneObject, camera: PinholeCamera, led_positions_mm: FloatArray,
                   led_radiant_intensity: FloatArray, polarization: Polarization,
-                  *, include_specular: bool = True) -> RenderResult:
+                  *, include_specular: bool = True, render_mode: str = "fast",
+                  mc: "MCSettings | None" = None) -> RenderResult:
     """Radiance image of any scene object (sphere, bumpy slab, mesh) lit by the LEDs' current emission (N, 3):
     cross-polarized frames hold half the diffuse light and no specular, parallel ones half the diffuse light
-    plus the specular reflection."""
+    plus the specular reflection.
+
+    ``render_mode``: "fast" (default) computes the subsurface light with the Jensen dipole and the exit factor
+    F_t(eta, w_o)/pi; "mc" renders it by Monte Carlo (:mod:`simulators.mc_capture`, options ``mc``:
+    :class:`~simulators.mc_capture.MCSettings`; seeded) and returns its standard error in ``stderr``. The
+    specular lobe (GGX) is the same analytic one in both modes."""
+    from .mc_capture import check_render_mode
+
+    check_render_mode(render_mode)
     H, W = camera.height_px, camera.width_px
     img = np.zeros((H, W, 3))
+    se_img = np.zeros((H, W, 3)) if render_mode == "mc" else None
     pts, hit = obj.intersect(camera)
     if not np.any(led_radiant_intensity > 0) or not hit.any():
-        return RenderResult(img, hit)
+        return RenderResult(img, hit, se_img)
     p = pts[hit]
     n = obj.normals_at(p)
     v = camera.view_directions(p)
-    cos_o = np.clip(np.sum(n * v, axis=-1), 0.0, 1.0)
-    b = _exitance(obj, p, led_positions_mm, [np.asarray(led_radiant_intensity, float)])[0]
-    diffuse = fresnel_transmittance(obj.eta, cos_o)[:, None] / np.pi * b
+    k = 1.0 if polarization == Polarization.NONE else 0.5
+    if render_mode == "mc":
+        diffuse, se = _mc_diffuse(obj, camera, np.asarray(led_positions_mm, float),
+                                  np.asarray(led_radiant_intensity, float), hit, mc)
+        assert se_img is not None
+        se_img[hit] = k * se
+    else:
+        cos_o = np.clip(np.sum(n * v, axis=-1), 0.0, 1.0)
+        b = _exitance(obj, p, led_positions_mm, [np.asarray(led_radiant_intensity, float)])[0]
+        diffuse = fresnel_transmittance(obj.eta, cos_o)[:, None] / np.pi * b
     spec = 0.0
     if include_specular and polarization != Polarization.CROSS:
         spec = specular_radiance(p, n, v, led_positions_mm, led_radiant_intensity, obj.eta, obj.specular_roughness)
-    img[hit] = (1.0 if polarization == Polarization.NONE else 0.5) * diffuse + spec
-    return RenderResult(img, hit)
+    img[hit] = k * diffuse + spec
+    return RenderResult(img, hit, se_img)
 
 
 @dataclass
@@ -414,13 +454,19 @@ class GradientCapture:
     points_mm: FloatArray
     view_dirs: FloatArray
     hit: npt.NDArray[np.bool_]
+    render_mode: str = "fast"
+    # render_mode "mc": {pattern: (H, W, 3)} Monte Carlo standard error of the *diffuse radiance* (both
+    # polarizations see half of it: frame units = 0.5 * value_per_radiance * this); None for "fast"
+    diffuse_stderr: dict[str, FloatArray] | None = None
+    led_mode: str = ""    # "mc": how the LEDs were rendered ("points" | "distant", simulators.mc_capture)
 
 
 def render_gradient_capture(obj: SceneObject, camera: PinholeCamera, led_positions_mm: npt.ArrayLike,
                             led_intensity: npt.ArrayLike, patterns: dict[str, npt.ArrayLike], *,
                             polarizations: tuple[str, ...] = ("cross", "parallel"), exposure_s: float = 1.0,
                             sensor: object | None = None, noise: bool = True, rng: np.random.Generator | None = None,
-                            ambient_radiance: float = 0.0) -> GradientCapture:
+                            ambient_radiance: float = 0.0, render_mode: str = "fast",
+                            mc: "MCSettings | None" = None) -> GradientCapture:
     """Render a polarized spherical-gradient capture of ``obj`` (Ma et al. 2007; science.md sec. 3).
 
     ``patterns``: {name: LED drive values (N,) or (N, 3) in [0, 1]} (e.g. full, x, y, z, x_c, ...), each LED's
@@ -431,8 +477,16 @@ def render_gradient_capture(obj: SceneObject, camera: PinholeCamera, led_positio
     photosite of its RGGB mosaic (``simulators.camera.expose``), read back one RGB pixel per 2 x 2 cell (green:
     the mean of the two sites), black-subtracted and divided by (white - black); ``noise=False`` gives the
     expected values of the same sensor (clipped at white). Without a sensor: radiance x ``exposure_s``, clipped at 1.
+
+    ``render_mode="mc"``: the subsurface light of every pattern is rendered by Monte Carlo
+    (:mod:`simulators.mc_capture`; ``mc``: :class:`~simulators.mc_capture.MCSettings`), all patterns with the same
+    seed (common random numbers); ``diffuse_stderr`` holds each pattern's standard error. The default LED mode
+    renders the lit LEDs as a distant piecewise-constant radiance map (no near field; see that module).
     """
     from .camera import expose  # deferred: simulators.camera imports this module
+    from .mc_capture import check_render_mode
+
+    check_render_mode(render_mode)
 
     pos = np.asarray(led_positions_mm, float)
     inten = np.asarray(led_intensity, float)
@@ -447,7 +501,26 @@ def render_gradient_capture(obj: SceneObject, camera: PinholeCamera, led_positio
     for name in names:
         drive = np.asarray(patterns[name], float)
         emissions.append(inten * (drive[:, None] if drive.ndim == 1 else drive))
-    diffuse = _exitance(obj, p, pos, emissions) if hit.any() else [np.zeros((0, 3))] * len(names)
+    diffuse_se: dict[str, FloatArray] | None = None
+    led_mode = ""
+    if render_mode == "mc":
+        from .mc_capture import MCSettings, render_mc_leds
+
+        settings = mc or MCSettings()
+        ft = np.full((len(p), 1), 1.0)  # the Monte Carlo radiance already is camera-side radiance
+        diffuse, diffuse_se = [], {}
+        for name, em in zip(names, emissions):
+            se_img = np.zeros((H, W, 3))
+            if hit.any() and np.any(em > 0):
+                im, led_mode = render_mc_leds(obj, camera, pos, em, settings)
+                diffuse.append(im.radiance[hit])
+                se_img[hit] = im.stderr[hit]
+            else:
+                diffuse.append(np.zeros((len(p), 3)))
+            diffuse_se[name] = se_img
+        # ``val = 0.5 * ft * b`` below: the fast path's b is exitance with ft = F_t/pi; here b is radiance
+    else:
+        diffuse = _exitance(obj, p, pos, emissions) if hit.any() else [np.zeros((0, 3))] * len(names)
     if sensor is not None:
         gain = float(sensor.gain_dn_per_unit) * exposure_s  # type: ignore[attr-defined]
         span = float(sensor.white_level_dn - sensor.black_level_dn)  # type: ignore[attr-defined]
@@ -480,4 +553,4 @@ def render_gradient_capture(obj: SceneObject, camera: PinholeCamera, led_positio
     normals[hit] = n
     view = np.full((H, W, 3), np.nan)
     view[hit] = v
-    return GradientCapture(frames, k, normals, pts, view, hit)
+    return GradientCapture(frames, k, normals, pts, view, hit, render_mode, diffuse_se, led_mode)
