@@ -142,6 +142,8 @@ class SceneConfig:
     eta: float
     tessellation: int
     seed: int
+    render: str = "fast"       # simulated camera: "fast" (Jensen dipole) or "mc" (Monte Carlo, simulators.mc)
+    mc_spp: int = 64           # Monte Carlo paths per pixel when render = "mc"
 
 
 @dataclass(frozen=True)
@@ -402,7 +404,8 @@ def parse_config(data: dict[str, Any], file: str = "<memory>") -> RigConfig:
         sigma_s_prime_per_mm=sc.vec3("sigma_s_prime_per_mm", default_s, positive=True),
         sigma_a_per_mm=sc.vec3("sigma_a_per_mm", default_a, nonneg=True),
         eta=sc.num("eta", 1.3, lo=1.0, hi=3.0), tessellation=sc.int("tessellation", 4, lo=1, hi=7),
-        seed=sc.int("seed", 0, lo=0))
+        seed=sc.int("seed", 0, lo=0), render=sc.str("render", "fast", choices=("fast", "mc")),
+        mc_spp=sc.int("mc_spp", 64, lo=2, hi=1_000_000))
     e = top.section("estimation")
     estimation = EstimationConfig(
         key_light_direction=e.vec3("key_light_direction"),

@@ -661,9 +661,11 @@ def estimate_session(root: str | Path, *, calibration: str | os.PathLike[str] | 
         rows += _rows("single-image", est, truth)
         model_rows = _model_rows(est, truth)
         if model_rows and truth:
-            notes.append(f"single-image models: the simulated frames were rendered with "
-                         f"{truth.get('renderer', 'the Jensen dipole (fast renderer)')}; the model that renderer "
-                         f"uses is favoured here (Monte Carlo frames: benchmarks/mc_single_image.py)")
+            renderer = truth.get("renderer", "the Jensen dipole (fast renderer)")
+            why = ("the model that renderer uses is favoured here (Monte Carlo frames: render = \"mc\" in [scene])"
+                   if "dipole" in renderer else
+                   "every flat-surface model is biased by the sphere's curvature at this size (docs/model-error.md)")
+            notes.append(f"single-image models: the simulated frames were rendered with {renderer}; {why}")
         if est.get("success") and not all(v for v in est["sigma_a_identifiable"] if v is not None):
             notes.append("single-image: sigma_a not identifiable in some channels; "
                          + est.get("identifiability_reason", ""))

@@ -116,12 +116,17 @@ def start_simulators(config: RigConfig, geometry: RigGeometry, workdir: Path | N
                        tessellation=sc.tessellation)
     sensor = SensorModel(cam.gain_dn_per_unit, cam.black_level_dn, cam.white_level_dn,
                          cam.read_noise_dn, cam.electrons_per_dn)
+    from simulators.mc_capture import MCSettings
+
     simcam = SimulatedCamera(obj, geometry.camera, geometry.led_positions_mm,
-                             config.sphere.led_intensity, drop, sensor, seed=sc.seed)
+                             config.sphere.led_intensity, drop, sensor, seed=sc.seed, render_mode=sc.render,
+                             mc=MCSettings(spp=sc.mc_spp, seed=sc.seed))
+    renderer = ("the Jensen dipole (fast renderer)" if sc.render == "fast" else
+                f"Monte Carlo light transport ({sc.mc_spp} paths per pixel)")
     rig = SimulatedRig({}, drop, truth={
         "shape": sc.shape, "radius_mm": sc.radius_mm, "center_mm": list(sc.center_mm),
         "material": sc.material, "sigma_s_prime_per_mm": list(sc.sigma_s_prime_per_mm),
-        "sigma_a_per_mm": list(sc.sigma_a_per_mm), "eta": sc.eta})
+        "sigma_a_per_mm": list(sc.sigma_a_per_mm), "eta": sc.eta, "renderer": renderer})
     rig._closers.append(simcam)
     rig.camera = simcam
     try:

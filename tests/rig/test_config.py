@@ -26,6 +26,9 @@ def test_default_rig_loads_and_is_simulated():
     (("scene", "material"), "unobtainium", "scene.material", "one of custom"),
     (("sphere", "max_mean_duty"), 1.5, "sphere.max_mean_duty", "a number <= 1.0"),
     (("scene", "eta"), 0.5, "scene.eta", "a number >= 1.0"),
+    (("scene", "render"), "exact", "scene.render", "one of fast, mc"),
+    (("scene", "mc_spp"), 1, "scene.mc_spp", "an integer in [2, 1000000]"),
+    (("estimation", "single_image_model"), "diffusion", "estimation.single_image_model", "one of mc-table"),
 ])
 def test_bad_field_is_named(tmp_path, path, value, field, expected):
     data = _default()
@@ -70,3 +73,23 @@ def test_duplicate_target_names_refused():
     data["targets"] = [{"name": "a", "xyz_mm": [0, 0, 0]}, {"name": "a", "xyz_mm": [1, 0, 0]}]
     with pytest.raises(ConfigError, match="unique target names"):
         parse_config(data, "x.toml")
+
+
+def test_scene_render_mode_reaches_the_simulated_camera(tmp_path):
+    """[scene] render = "mc" makes the simulated camera render with Monte Carlo light transport, and the session's
+    truth says which renderer made the frames (the estimators' model comparison names it)."""
+    from rig.factory import start_simulators
+    from rig.geometry import rig_geometry
+
+    data = _default()
+    data["scene"].update(render="mc", mc_spp=8)
+    cfg = parse_config(data, "mc_rig.toml")
+    assert cfg.scene.render == "mc" and cfg.scene.mc_spp == 8
+    sim = start_simulators(cfg, rig_geometry(cfg), tmp_path)
+    try:
+        assert sim.camera.render_mode == "mc" and sim.camera.mc.spp == 8 and sim.camera.mc.seed == cfg.scene.seed
+        assert sim.truth["renderer"].startswith("Monte Carlo")
+    finally:
+        sim.close()
+    fast = load_config()
+    assert fast.scene.render == "fast"
