@@ -10,9 +10,13 @@ a fresh subprocess, in this order:
 1. **read floor**: every input tile (frames and normals, the same ``tile_rows`` tiles, from the same memory maps)
    is read once and summed — nothing else;
 2. **pipeline**: what ``rig estimate gradients`` computes for a sphere: the LED response LUT (362 LEDs, the default
-   rig), :func:`estimation.gradients.compute_maps` in LED mode (the per-pixel least-squares solve, twice) and
-   :func:`estimation.diffusion.estimate_sphere` (per-pixel (albedo, shortening) -> alpha', l', sigma_s', sigma_a,
-   D, ... maps, then the region summary), all maps written tile by tile into memory maps (``out_dir``);
+   rig), :func:`estimation.gradients.compute_maps` in LED mode (the per-pixel least-squares solve, twice; without
+   the diagnostic ``consistency`` map, which that command does not write) and
+   :func:`estimation.diffusion.estimate_sphere` (per-pixel (albedo, shortening) -> alpha', l', then the region
+   summary), the stored maps written tile by tile into memory maps (``out_dir``): albedo, diffuse vectors, masks,
+   shortening, alpha', l', unknown, censored (~113 bytes per pixel); diffuse normals, sigma_s', sigma_a, D, R_d, ...
+   are derived element-wise on access (``DerivedMap``), not stored. Row tiles run in ``--workers`` threads
+   (default min(2, CPUs));
 3. **read floor** again (both floors run on a warm page cache: the frames were just written or read);
 4. **write floor**: writing the same number of bytes the pipeline wrote, into fresh memory maps, tile by tile;
 5. the pipeline again under ``tracemalloc`` (numpy registers its allocations with it) for the exact peak of
@@ -211,7 +215,8 @@ def run_write(folder: Path, nbytes: int, shape: tuple[int, int], tile_rows: int)
     return {"seconds": dt, "maps": n_maps, "bytes": n_maps * per_map}
 
 
-def run_pipeline(folder: Path, parallel: bool, tile_rows: int, trace: bool, ram: bool = False) -> dict[str, Any]:
+def run_pipeline(folder: Path, parallel: bool, tile_rows: int, trace: bool, ram: bool = False,
+                 workers: int | None = None) -> dict[str, Any]:
     frames, normals = load_inputs(folder, parallel)
     out = None if ram else folder / "maps"
     if out is not None and out.exists():
@@ -223,9 +228,11 @@ def run_pipeline(folder: Path, parallel: bool, tile_rows: int, trace: bool, ram:
     lut = build_response_lut(rig, eta=ETA, surface_radius_mm=RADIUS_MM)
     t_lut = time.perf_counter()
     maps = compute_maps(frames, albedo_scale=1.0 / VALUE_SCALE, lut=lut, eta=ETA, geometry_normals=normals,
-                        tile_rows=tile_rows, out_dir=out)
+                        tile_rows=tile_rows, out_dir=out, workers=workers,
+                        consistency=False)  # as rig estimate gradients: the diagnostic map is not an output
     t_maps = time.perf_counter()
-    est = estimate_sphere(maps, radius_mm=RADIUS_MM, true_normals=normals, tile_rows=tile_rows, out_dir=out)
+    est = estimate_sphere(maps, radius_mm=RADIUS_MM, true_normals=normals, tile_rows=tile_rows, out_dir=out,
+                          workers=workers)
     t_end = time.perf_counter()
     peak = tracemalloc.get_traced_memory()[1] if trace else None
     if trace:
@@ -235,7 +242,8 @@ def run_pipeline(folder: Path, parallel: bool, tile_rows: int, trace: bool, ram:
     truth_D = 1.0 / (3.0 * (MARBLE[0] + MARBLE[1]))
     return {"seconds": t_end - t0, "seconds_lut": t_lut - t0, "seconds_maps": t_maps - t_lut,
             "seconds_diffusion": t_end - t_maps, "tracemalloc_peak_bytes": peak, "bytes_written": written,
-            "known_fraction": float((~maps.unknown[..., 0]).mean()),
+            "known_fraction": float((~maps.unknown[..., 0]).mean()), "workers": maps.provenance["workers"],
+            "stored": sorted(p.stem for p in out.glob("*.npy")) if out is not None else [],
             "D_mm": s.value("D_mm").tolist(), "D_rel_err": (s.value("D_mm") / truth_D - 1).tolist(),
             "status": list(s.status)}
 
@@ -248,9 +256,10 @@ def worker(args: argparse.Namespace) -> int:
         elif args.worker == "write":
             res = run_write(folder, args.write_bytes, (args.height, args.width), args.tile_rows)
         elif args.worker == "ram":
-            res = run_pipeline(folder, args.parallel, args.tile_rows, trace=False, ram=True)
+            res = run_pipeline(folder, args.parallel, args.tile_rows, trace=False, ram=True, workers=args.workers)
         else:  # --quick: one pipeline run, traced (tracemalloc adds a little time to it)
-            res = run_pipeline(folder, args.parallel, args.tile_rows, trace=args.worker == "trace" or args.quick)
+            res = run_pipeline(folder, args.parallel, args.tile_rows, trace=args.worker == "trace" or args.quick,
+                               workers=args.workers)
     res.update(anon_baseline_bytes=mem.baseline, anon_peak_bytes=mem.peak, vmhwm_bytes=mem._read("VmHWM:"))
     print(json.dumps(res))
     return 0
@@ -263,6 +272,8 @@ def spawn(kind: str, folder: Path, args: argparse.Namespace, **extra: Any) -> di
         cmd.append("--parallel")
     if args.quick:
         cmd.append("--quick")
+    if args.workers is not None:
+        cmd += ["--workers", str(args.workers)]
     for k, v in extra.items():
         cmd += [f"--{k.replace('_', '-')}", str(v)]
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), *sys.path]))
@@ -279,6 +290,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--megapixels", type=float, default=None, help="frame size (3:2 aspect); default 24")
     ap.add_argument("--tile-rows", type=int, default=256, help="rows per tile (reading and processing)")
     ap.add_argument("--parallel", action="store_true", help="add the parallel-polarized frames (specular maps)")
+    ap.add_argument("--workers", type=int, default=None,
+                    help="threads over row tiles in compute_maps / estimate_diffusion (default min(2, CPUs))")
     ap.add_argument("--tmp", type=Path, default=None, help="folder for the temporary files")
     ap.add_argument("--keep", action="store_true", help="keep the temporary files")
     ap.add_argument("--json", type=Path, help="write the results as JSON")
@@ -337,6 +350,11 @@ def main(argv: list[str] | None = None) -> int:
         rows += [("pipeline, maps in RAM (diagnostic)", ram["seconds"], mpx / ram["seconds"],
                   f"peak RssAnon {(ram['anon_peak_bytes'] - ram['anon_baseline_bytes']) / frame_set:.2f} frame sets"),
                  ("  per-pixel part, maps in RAM", ram_px, mpx / ram_px, "")]
+    print("read floor = only reading the same inputs the same way: every input .npy memory map (the frames and the "
+          "known normals), the same tile_rows row tiles, np.add.reduce over each tile, nothing else; fresh process, "
+          "warm page cache (the inputs were just written / read); the faster of two runs is the reference.")
+    print(f"pipeline: {pipe['workers']} worker thread(s); maps stored: {', '.join(pipe['stored'])} "
+          f"({pipe['bytes_written'] / 2**30:.2f} GiB); every other map is derived on access.\n")
     print("| stage | s | MP/s | note |\n|---|---|---|---|")
     for name, s, r, note in rows:
         print(f"| {name} | {s:.2f} | {r:.2f} | {note} |")

@@ -43,10 +43,13 @@ from scipy import optimize, stats
 
 from .dipole import (boundary_A, cumulative_disk, dipole_coefficients, hankel_transform,
                      reduced_albedo_from_total_reflectance, second_moment_factor_G, total_diffuse_reflectance_albedo)
-from .gradients import _BLOCK_PX, GradientMaps, map_allocator
+from .gradients import _BLOCK_PX, DerivedMap, GradientMaps, _run_tiles, map_allocator, tile_workers
 
 __all__ = [
     "METHODS",
+    "MODELS_GROUNDED",
+    "check_grounded_model",
+    "grounded_model_bias",
     "sphere_albedo",
     "sphere_shortening",
     "truncated_second_moment_mm4",
@@ -79,9 +82,142 @@ _PARAMS = ("albedo", "shortening", "R_d", "alpha_prime", "l_prime_mm", "sigma_t_
            "sigma_s_prime_per_mm", "sigma_a_per_mm", "D_mm", "l_d_mm", "r2_mm2")
 
 
+MODELS_GROUNDED: tuple[str, ...] = ("dipole-jensen", "dipole-better", "mc-table")
+
+
 def _check_jensen(model: str) -> None:
     if model != "dipole-jensen":
         raise ValueError(f"the grounded estimator supports model='dipole-jensen' only, got {model!r}")
+
+
+def check_grounded_model(model: str, method: str, eta: float | None = None) -> str:
+    """``model`` for the grounded estimator: any of :data:`MODELS_GROUNDED` with ``method="small_blur"`` (alpha'
+    from R_d and <r^2> = l'^2 G(alpha') of that model's half-space profile); ``method="sphere"`` uses the
+    Jensen closed forms of the truncated sphere integrals and supports "dipole-jensen" only. "mc-table" also
+    needs eta in the table's range (1.0-1.8)."""
+    if model not in MODELS_GROUNDED:
+        raise ValueError(f"unknown model {model!r}; valid models: {', '.join(MODELS_GROUNDED)}")
+    if method == "sphere" and model != "dipole-jensen":
+        raise ValueError(f"method='sphere' (exact Jensen sphere integrals) supports model='dipole-jensen' only; "
+                         f"use method='small_blur' for model={model!r}")
+    if model == "mc-table" and eta is not None:
+        from .mc_table import default_table
+
+        default_table().check_eta(float(eta))
+    return model
+
+
+@lru_cache(maxsize=16)
+def _model_tables(eta: float, fdr: str, model: str, n: int = 4097) -> tuple[NDArray[np.float32], NDArray[np.float32],
+                                                                            NDArray[np.float32], float, float]:
+    """Half-space tables of ``model`` (sigma_t' = 1): s(R_d) on a uniform R_d grid in [0, 1] (n), and R_d(s),
+    s G(s) on a uniform s grid in [0, sqrt 3] (n; s G is finite at s = 0 for the dipoles), plus the R_d range the
+    model covers (the table's albedo range for "mc-table": outside it the pixel is censored at the edge)."""
+    s_f = np.linspace(0.0, _S_MAX, 65537)
+    a_f = 1.0 - s_f * s_f / 3.0
+    s_g = np.linspace(0.0, _S_MAX, n)
+    a_g = 1.0 - s_g * s_g / 3.0
+    if model == "mc-table":
+        from .mc_table import default_table, second_moment_factor
+
+        tab = default_table()
+        lo, hi = tab.alpha_prime_range
+        r_f = tab.total_reflectance(np.clip(a_f, lo, hi), eta)
+        r_g = tab.total_reflectance(np.clip(a_g, lo, hi), eta)
+        sg = s_g * second_moment_factor(np.clip(a_g, lo, hi), eta)
+        r_lo, r_hi = float(tab.total_reflectance(lo, eta)), float(tab.total_reflectance(hi, eta))
+    else:
+        from .dipole import second_moment_mm2, total_diffuse_reflectance
+
+        af = np.clip(a_f, 0.0, 1.0)
+        r_f = total_diffuse_reflectance(af, 1.0 - af, eta, model=model, fdr=fdr)
+        ag = np.clip(a_g, 0.0, 1.0)
+        r_g = total_diffuse_reflectance(ag, 1.0 - ag, eta, model=model, fdr=fdr)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            sg = s_g * second_moment_mm2(ag, 1.0 - ag, eta, model=model, fdr=fdr)
+        sg[0] = 2.0 * sg[1] - sg[2]  # s G at s = 0 (finite): linear extrapolation
+        r_lo, r_hi = float(r_f[-1]), float(r_f[0])
+    s_of_r = np.interp(np.linspace(0.0, 1.0, n), r_f[::-1], s_f[::-1])
+    return (s_of_r.astype(np.float32), np.asarray(r_g, np.float32), np.asarray(sg, np.float32), r_lo, r_hi)
+
+
+def _s_lookup(s: Array, table: NDArray[np.float32]) -> Array:
+    """f(s) from a table on the uniform s grid [0, sqrt 3] (linear)."""
+    n = table.size - 1
+    fx = np.clip(np.nan_to_num(s), 0.0, _S_MAX) * np.float32(n / _S_MAX)
+    i = np.minimum(fx.astype(np.intp), n - 1)
+    f = (fx - i).astype(np.float32)
+    return table[i] * (np.float32(1.0) - f) + table[i + 1] * f
+
+
+def _alpha_from_rd(rd: float, eta: float, fdr: str, model: str) -> tuple[float, bool]:
+    """(alpha', censored) of the half-space R_d of ``model`` (scalar, exact)."""
+    if model == "mc-table":
+        from .mc_table import default_table
+
+        tab = default_table()
+        lo, hi = (float(tab.total_reflectance(a, eta)) for a in tab.alpha_prime_range)
+        cens = not lo <= rd <= hi
+        return float(tab.invert_albedo(min(max(rd, lo), hi), eta)), cens
+    al = float(reduced_albedo_from_total_reflectance(min(max(rd, 0.0), 1.0), eta, model=model, fdr=fdr))
+    return al, rd >= 1.0
+
+
+def _model_rd(alpha: float, eta: float, fdr: str, model: str) -> float:
+    """Half-space R_d of ``model`` at alpha' (scalar)."""
+    if model == "mc-table":
+        from .mc_table import default_table
+
+        return float(default_table().total_reflectance(alpha, eta, out_of_range="clip"))
+    from .dipole import total_diffuse_reflectance
+
+    return float(total_diffuse_reflectance(alpha, 1.0 - alpha, eta, model=model, fdr=fdr))
+
+
+def _G_model(alpha: float, eta: float, fdr: str, model: str) -> float:
+    """<r^2> sigma_t'^2 of ``model``'s half-space profile at alpha' (scalar)."""
+    if model == "mc-table":
+        from .mc_table import second_moment_factor
+
+        return float(second_moment_factor(alpha, eta, out_of_range="clip")[0])
+    if model == "dipole-jensen":
+        return float(second_moment_factor_G(alpha, float(boundary_A(eta, fdr=fdr))))
+    from .dipole import second_moment_mm2
+
+    return float(second_moment_mm2(alpha, 1.0 - alpha, eta, model=model, fdr=fdr))
+
+
+def grounded_model_bias(sigma_s_prime_per_mm: ArrayLike, sigma_a_per_mm: ArrayLike, eta: float, model: str, *,
+                        fdr: str = "fit") -> dict[str, Any]:
+    """Bias of ``model`` against the Monte Carlo table at fitted (sigma_s', sigma_a) (3,) — the quantities the
+    gradients estimator uses: :func:`estimation.single_image.model_bias` (R_d, profile and radiance ratios,
+    table-equivalent parameters) plus ``r2_ratio`` = <r^2>_model / <r^2>_table of the normalized half-space
+    profile. Channels with non-finite or non-positive parameters are None."""
+    from .mc_table import second_moment_mm2 as mc_r2
+    from .single_image import model_bias
+
+    ssp = np.asarray(sigma_s_prime_per_mm, dtype=np.float64).reshape(-1)
+    sa = np.asarray(sigma_a_per_mm, dtype=np.float64).reshape(-1)
+    ok = np.isfinite(ssp) & np.isfinite(sa) & (ssp > 0) & (sa > 0)
+    out: dict[str, Any] = {"reference": "mc-table", "model": model, "channels_evaluated": ok.tolist()}
+    if not ok.any():
+        out.update(available=False, reason="no channel with finite sigma_s' > 0 and sigma_a > 0")
+        return out
+    mb = model_bias(ssp[ok], sa[ok], eta, model, fdr=fdr)
+    if mb.get("available", True):
+        st = ssp[ok] + sa[ok]
+        r2_ref = mc_r2(ssp[ok], sa[ok], eta, out_of_range="clip")
+        r2_m = np.array([_G_model(float(a), eta, fdr, model) for a in ssp[ok] / st]) / (st * st)
+        mb["r2_ratio"] = (r2_m / r2_ref).tolist()
+
+    def expand(v: Any) -> Any:
+        if isinstance(v, list) and len(v) == int(ok.sum()):
+            it = iter(v)
+            return [next(it) if o else None for o in ok]
+        return v
+
+    out.update({k: expand(v) for k, v in mb.items() if k not in ("model", "reference")})
+    return out
 
 
 def _phi1(y: Array) -> Array:
@@ -544,7 +680,8 @@ def estimate_diffusion(maps: GradientMaps, true_normals: ArrayLike, *, sphere_ra
                        curvature_sq_per_mm2: ArrayLike | None = None, method: str = "sphere",
                        region: ArrayLike | None = None, max_radius_mm: float = 500.0, grazing_deg: float = 70.0,
                        fdr: str = "fit", model: str = "dipole-jensen", inversion: str = "table",
-                       tile_rows: int = 256, out_dir: str | Path | None = None) -> DiffusionMaps:
+                       tile_rows: int = 256, out_dir: str | Path | None = None,
+                       workers: int | None = None) -> DiffusionMaps:
     """Grounded per-pixel estimate from diffuse vectors and true normals (no fitted constant).
 
     ``true_normals`` (H, W, 3): specular normals or known geometry (unit; NaN = unknown). Geometry: a known
@@ -559,11 +696,15 @@ def estimate_diffusion(maps: GradientMaps, true_normals: ArrayLike, *, sphere_ra
     noise); "exact" runs :func:`invert_sphere` on every pixel (~7 us per value). Region summaries
     (:func:`summarize`) always invert exactly. The maps are computed in ``tile_rows`` row tiles, in float32;
     ``out_dir``: write them tile by tile into ``.npy`` memory maps there (``estimation.gradients.map_allocator``,
-    prefix ``diffusion_``) instead of RAM.
+    prefix ``diffusion_``) instead of RAM. Only ``alpha_prime``, ``l_prime_mm``, ``shortening`` (the parameters
+    and the observable), ``unknown``, ``censored`` and, with a curvature map, ``radius_mm`` are stored; albedo
+    (the gradient albedo where known), R_d, sigma_t', sigma_s', sigma_a, D, l_d and <r^2> are
+    :class:`estimation.gradients.DerivedMap` s computed element-wise from them on access (same float32 formulas;
+    ``provenance["stored"]`` / ``["derived"]``). ``workers``: threads over row tiles (default min(2, CPUs)).
     """
-    _check_jensen(model)
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; valid: {', '.join(METHODS)}")
+    check_grounded_model(model, method, maps.eta)
     if inversion not in ("table", "exact"):
         raise ValueError(f"unknown inversion {inversion!r}; valid: table, exact")
     if tile_rows < 1:
@@ -578,14 +719,20 @@ def estimate_diffusion(maps: GradientMaps, true_normals: ArrayLike, *, sphere_ra
     f32 = np.float32
     npx = H * W
     alloc = map_allocator(out_dir, prefix="diffusion_")
-    names = ("albedo", "shortening", "R_d", "alpha_prime", "l_prime_mm", "sigma_t_prime_per_mm",
-             "sigma_s_prime_per_mm", "sigma_a_per_mm", "D_mm", "l_d_mm", "r2_mm2")
+    names = _STORED
     outs = {k: alloc(k, (H, W, 3), f32) for k in names}
-    radius_out = alloc("radius_mm", (H, W), f32)
+    if curvature_sq_per_mm2 is not None:
+        radius_out = alloc("radius_mm", (H, W), f32)
+        flat_r = radius_out.reshape(npx)
+    else:  # a known sphere: one radius everywhere, a zero-stride view (not stored)
+        assert sphere_radius_mm is not None
+        radius_out = np.broadcast_to(f32(sphere_radius_mm), (H, W))
+        flat_r = None
     unknown_out = alloc("unknown", (H, W, 3), bool)
     cens_out = alloc("censored", (H, W, 3), bool)
     flat = {k: v.reshape(npx, 3) for k, v in outs.items()}
-    flat_r, flat_u, flat_c = radius_out.reshape(npx), unknown_out.reshape(npx, 3), cens_out.reshape(npx, 3)
+    flat_u, flat_c = unknown_out.reshape(npx, 3), cens_out.reshape(npx, 3)
+    n_workers = tile_workers(workers)
     k2_full = None
     if curvature_sq_per_mm2 is not None:
         k2_full = np.broadcast_to(np.asarray(curvature_sq_per_mm2) if np.ndim(curvature_sq_per_mm2) < 2
@@ -596,11 +743,11 @@ def estimate_diffusion(maps: GradientMaps, true_normals: ArrayLike, *, sphere_ra
     cos_graz = float(np.cos(np.deg2rad(grazing_deg)))
     tab = _sphere_inverse_table(float(eta), fdr) if method == "sphere" and inversion == "table" else None
     hs = _halfspace_s_table(float(eta), fdr) if method == "small_blur" else None
+    mtab = _model_tables(float(eta), fdr, model) if model != "dipole-jensen" else None
     nan = f32(np.nan)
-    inf = f32(np.inf)
-    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-        for r0 in range(0, H, tile_rows):
-            r1 = min(H, r0 + tile_rows)
+
+    def tile(r0: int, r1: int) -> None:
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
             t_nt = _rows(true_normals, r0, r1)
             t_v = _rows(maps.diffuse_vectors, r0, r1)
             t_a = _rows(maps.albedo, r0, r1)
@@ -646,6 +793,12 @@ def estimate_diffusion(maps: GradientMaps, true_normals: ArrayLike, *, sphere_ra
                                                    eta, fdr=fdr)
                         s[known] = np.sqrt(3.0 * np.clip(1.0 - al, 0.0, None))
                         l_mm[known], cens[known] = ll, cc
+                elif mtab is not None:  # small_blur with a tabulated half-space model
+                    s = _uniform_lookup(A, mtab[0])  # alpha' from the model's R_d
+                    r2 = 2.0 * (1.0 - S) * rho3 * rho3
+                    G = _s_lookup(s, mtab[2]) / s
+                    cens = (r2 <= 0) | ~(A > f32(mtab[3])) | ~(A < f32(mtab[4]))
+                    l_mm = np.maximum(np.sqrt(np.maximum(r2, 0.0) / G), 1e-4 * rho3)
                 else:
                     assert hs is not None
                     s = _uniform_lookup(A, hs)  # alpha' from the half-space R_d
@@ -655,37 +808,81 @@ def estimate_diffusion(maps: GradientMaps, true_normals: ArrayLike, *, sphere_ra
                     cens = (r2 <= 0) | (A >= 1.0)
                     l_mm = np.maximum(np.sqrt(np.maximum(r2, 0.0) / G), 1e-4 * rho3)
                 alpha = 1.0 - s * s / 3.0
-                st = 1.0 / l_mm
-                er, ev = np.exp(-s), np.exp(-s * kz)
-                pos = s > 0
-                vals = {
-                    "albedo": A, "shortening": S, "alpha_prime": alpha, "l_prime_mm": l_mm,
-                    "sigma_t_prime_per_mm": st, "sigma_s_prime_per_mm": alpha * st,
-                    "sigma_a_per_mm": (1.0 - alpha) * st, "D_mm": l_mm / 3.0,
-                    "l_d_mm": np.where(pos, l_mm / s, inf),
-                    "r2_mm2": np.where(pos, l_mm * l_mm * (2.0 * (er + kz * ev) / (s * (er + ev))), inf),
-                    "R_d": 0.5 * alpha * (1.0 + np.exp(-4.0 / 3.0 * A_b * s)) * er,
-                }
+                vals = {"shortening": S, "alpha_prime": alpha, "l_prime_mm": l_mm}
                 unknown |= ~np.isfinite(l_mm) | ~np.isfinite(s)
                 for k, val in vals.items():
                     o = flat[k][o0:o1]
                     o[...] = val
                     np.copyto(o, nan, where=unknown)
-                flat_r[o0:o1] = np.where(np.isfinite(rho), rho, nan)
+                if flat_r is not None:
+                    flat_r[o0:o1] = np.where(np.isfinite(rho), rho, nan)
                 flat_u[o0:o1] = unknown
                 flat_c[o0:o1] = cens & ~unknown
+
+    _run_tiles(tile, H, tile_rows, n_workers)
+    der = _derived_maps(outs["alpha_prime"], outs["l_prime_mm"], unknown_out, maps.albedo, A_b, mtab, model)
     prov = {"module": "estimation.diffusion", "version": 2, "estimator": "grounded", "method": method,
             "model": model, "fdr": fdr, "eta": eta, "sphere_radius_mm": sphere_radius_mm,
             "curvature_given": curvature_sq_per_mm2 is not None, "max_radius_mm": max_radius_mm,
             "grazing_deg": grazing_deg, "inversion": inversion if method == "sphere" else "closed form",
             "storage": "RAM" if out_dir is None else f"memory maps in {out_dir}",
+            "stored": list(_STORED) + ["unknown", "censored"] + (["radius_mm"] if flat_r is not None else []),
+            "derived": {k: v.definition for k, v in der.items()}
+                       | ({} if flat_r is not None else {"radius_mm": f"constant {sphere_radius_mm} mm (sphere)"}),
+            "workers": n_workers,
             "gradients": dict(maps.provenance)}
     return DiffusionMaps(
-        albedo=outs["albedo"], shortening=outs["shortening"], radius_mm=radius_out, R_d=outs["R_d"],
+        albedo=der["albedo"], shortening=outs["shortening"], radius_mm=radius_out, R_d=der["R_d"],
         alpha_prime=outs["alpha_prime"], l_prime_mm=outs["l_prime_mm"],
-        sigma_t_prime_per_mm=outs["sigma_t_prime_per_mm"], sigma_s_prime_per_mm=outs["sigma_s_prime_per_mm"],
-        sigma_a_per_mm=outs["sigma_a_per_mm"], D_mm=outs["D_mm"], l_d_mm=outs["l_d_mm"], r2_mm2=outs["r2_mm2"],
+        sigma_t_prime_per_mm=der["sigma_t_prime_per_mm"], sigma_s_prime_per_mm=der["sigma_s_prime_per_mm"],
+        sigma_a_per_mm=der["sigma_a_per_mm"], D_mm=der["D_mm"], l_d_mm=der["l_d_mm"], r2_mm2=der["r2_mm2"],
         unknown=unknown_out, censored=cens_out, method=method, eta=eta, provenance=prov)
+
+
+_STORED = ("shortening", "alpha_prime", "l_prime_mm")
+
+
+def _derived_maps(alpha: Any, l_mm: Any, unknown: Any, albedo: Any, A_b: float, mtab: Any = None,
+                  model: str = "dipole-jensen") -> dict[str, DerivedMap]:
+    """The maps :func:`estimate_diffusion` derives from alpha', l' (float32, NaN where ``unknown``)."""
+    f32 = np.float32
+    kz = f32(1.0 + 4.0 * A_b / 3.0)
+    nan, inf = f32(np.nan), f32(np.inf)
+    shape = np.shape(alpha)
+
+    def s_of(a: Array) -> Array:
+        return np.sqrt(f32(3.0) * np.maximum(f32(1.0) - a, f32(0.0)))
+
+    def l_d(a: Array, l: Array, u: Array) -> Array:
+        s = s_of(a)
+        return np.where(u, nan, np.where(s > 0, l / s, inf))
+
+    def r2(a: Array, l: Array, u: Array) -> Array:
+        s = s_of(a)
+        if mtab is not None:
+            return np.where(u, nan, np.where(s > 0, l * l * (_s_lookup(s, mtab[2]) / s), inf))
+        er, ev = np.exp(-s), np.exp(-s * kz)
+        return np.where(u, nan, np.where(s > 0, l * l * (f32(2.0) * (er + kz * ev) / (s * (er + ev))), inf))
+
+    def r_d(a: Array, u: Array) -> Array:
+        s = s_of(a)
+        if mtab is not None:
+            return np.where(u, nan, _s_lookup(s, mtab[1]))
+        return np.where(u, nan, f32(0.5) * a * (f32(1.0) + np.exp(f32(-4.0 / 3.0 * A_b) * s)) * np.exp(-s))
+
+    def mk(func: Any, srcs: tuple[Any, ...], definition: str) -> DerivedMap:
+        return DerivedMap(func, srcs, shape, np.float32, definition)
+
+    return {
+        "albedo": mk(lambda A, u: np.where(u, nan, A), (albedo, unknown), "gradient albedo where known"),
+        "sigma_t_prime_per_mm": mk(lambda l: f32(1.0) / l, (l_mm,), "1 / l'"),
+        "sigma_s_prime_per_mm": mk(lambda a, l: a * (f32(1.0) / l), (alpha, l_mm), "alpha' / l'"),
+        "sigma_a_per_mm": mk(lambda a, l: (f32(1.0) - a) * (f32(1.0) / l), (alpha, l_mm), "(1 - alpha') / l'"),
+        "D_mm": mk(lambda l: l / f32(3.0), (l_mm,), "l' / 3"),
+        "l_d_mm": mk(l_d, (alpha, l_mm, unknown), "l' / sqrt(3 (1 - alpha')) (inf when sigma_a = 0)"),
+        "r2_mm2": mk(r2, (alpha, l_mm, unknown), f"l'^2 G(alpha') of {model} (inf when sigma_a = 0)"),
+        "R_d": mk(r_d, (alpha, unknown), f"half-space R_d(alpha', eta) of {model}"),
+    }
 
 
 def _rows(a: Any, r0: int, r1: int) -> NDArray[Any]:
@@ -755,13 +952,20 @@ class DiffusionSummary:
                                "confidence": self.confidence, "method": self.method}
         for k, p in self.params.items():
             out[k] = {"value": p.value.tolist(), "interval": p.interval.tolist()}
+        out["model"] = self.provenance.get("model", "dipole-jensen")
+        if "model_bias" in self.provenance:
+            out["model_bias"] = self.provenance["model_bias"]
         return out
 
 
 def summarize(dmaps: DiffusionMaps, region: ArrayLike | None = None, *, confidence: float = 0.95,
               systematic_shortening: float = 5e-4, systematic_albedo_rel: float = 2e-3,
-              fdr: str = "fit") -> DiffusionSummary:
+              fdr: str = "fit", model: str | None = None, model_bias: bool = True) -> DiffusionSummary:
     """Robust per-channel summary over ``region`` (default: every known pixel).
+
+    ``model``: the profile model of the maps (default: the one recorded in ``dmaps.provenance``, else
+    "dipole-jensen"); ``model_bias``: also report the model's bias against the Monte Carlo table at the summary's
+    parameters (:func:`grounded_model_bias`) in ``provenance["model_bias"]`` (and :meth:`DiffusionSummary.as_dict`).
 
     When the radius is uniform over the region (a known sphere) the *observables* are pooled: median albedo and
     median shortening with order-statistic intervals for the median (i.i.d. pixel noise), widened by the
@@ -772,6 +976,9 @@ def summarize(dmaps: DiffusionMaps, region: ArrayLike | None = None, *, confiden
     curvature) the parameters' own per-pixel medians and order-statistic intervals are reported.
     """
     H, W = dmaps.albedo.shape[:2]
+    if model is None:
+        model = str(dmaps.provenance.get("model", "dipole-jensen"))
+    check_grounded_model(model, dmaps.method, dmaps.eta)
     reg = np.ones((H, W), bool) if region is None else np.asarray(region, dtype=bool)
     eta = dmaps.eta
     vals = {k: np.full(3, np.nan) for k in _PARAMS}
@@ -802,13 +1009,16 @@ def summarize(dmaps: DiffusionMaps, region: ArrayLike | None = None, *, confiden
                 if dmaps.method == "sphere":
                     al, ll, cens = invert_sphere_scalar(a, s, rho, eta, fdr=fdr)
                 else:
-                    al = float(reduced_albedo_from_total_reflectance(min(max(a, 0.0), 1.0), eta, fdr=fdr))
+                    al, c_a = _alpha_from_rd(a, eta, fdr, model)
                     r2 = 4.0 * (1.0 - s) * rho * rho / 2.0
-                    G = float(second_moment_factor_G(al, float(boundary_A(eta, fdr=fdr))))
-                    cens = r2 <= 0 or a >= 1.0
+                    G = _G_model(al, eta, fdr, model)
+                    cens = r2 <= 0 or c_a
                     ll = float(np.sqrt(max(r2, 0.0) / G)) if G > 0 else float("nan")
                     ll = max(ll, 1e-4 * rho)
                 d = _derived(np.array(al), np.array(ll), eta, fdr)
+                if model != "dipole-jensen":
+                    d["R_d"] = np.asarray(_model_rd(al, eta, fdr, model))
+                    d["r2_mm2"] = np.asarray(ll * ll * G)
                 return {k: float(v) for k, v in d.items()}, cens
 
             point, cens = solve(A_med, S_med)
@@ -827,7 +1037,13 @@ def summarize(dmaps: DiffusionMaps, region: ArrayLike | None = None, *, confiden
             status.append("censored" if cens else "ok")
     params = {k: ParameterSummary(vals[k], ints[k]) for k in _PARAMS}
     prov = {"confidence": confidence, "systematic_shortening": systematic_shortening,
-            "systematic_albedo_rel": systematic_albedo_rel, "maps": dmaps.provenance}
+            "systematic_albedo_rel": systematic_albedo_rel, "maps": dmaps.provenance, "model": model}
+    if model_bias:
+        try:
+            prov["model_bias"] = grounded_model_bias(vals["sigma_s_prime_per_mm"], vals["sigma_a_per_mm"], eta,
+                                                     model, fdr=fdr)
+        except (ValueError, FileNotFoundError) as exc:  # e.g. eta outside the table: say so, do not fail
+            prov["model_bias"] = {"available": False, "reason": str(exc)}
     st3 = (status[0], status[1], status[2])
     return DiffusionSummary(params, st3, npix, confidence, dmaps.method, spread, prov)
 
@@ -859,7 +1075,8 @@ def estimate_sphere(maps: GradientMaps, *, radius_mm: float, true_normals: Array
                     camera: Any = None, center_mm: ArrayLike | None = None, region: ArrayLike | None = None,
                     method: str = "sphere", erode_px: int = 2, confidence: float = 0.95,
                     fdr: str = "fit", inversion: str = "table", tile_rows: int = 256,
-                    out_dir: str | Path | None = None) -> SphereEstimate:
+                    out_dir: str | Path | None = None, workers: int | None = None,
+                    model: str = "dipole-jensen") -> SphereEstimate:
     """Grounded estimate on a known sphere: per-pixel maps plus the region summary (median + interval).
 
     The true normals come from ``true_normals`` (H, W, 3) or from ``camera`` + ``center_mm`` via
@@ -886,8 +1103,9 @@ def estimate_sphere(maps: GradientMaps, *, radius_mm: float, true_normals: Array
     if erode_px > 0:
         reg = ndimage.binary_erosion(reg, iterations=int(erode_px))
     dm = estimate_diffusion(maps, true_normals, sphere_radius_mm=radius_mm, method=method, region=reg, fdr=fdr,
-                            inversion=inversion, tile_rows=tile_rows, out_dir=out_dir)
-    return SphereEstimate(dm, summarize(dm, reg, confidence=confidence, fdr=fdr))
+                            inversion=inversion, tile_rows=tile_rows, out_dir=out_dir, workers=workers,
+                            model=model)
+    return SphereEstimate(dm, summarize(dm, reg, confidence=confidence, fdr=fdr, model=model))
 
 
 # --------------------------------------------------------------------------------------------------------------

@@ -67,6 +67,9 @@ __all__ = [
     "oct_encode",
     "oct_decode",
     "map_allocator",
+    "DerivedMap",
+    "UnitVectorMap",
+    "tile_workers",
 ]
 
 Array = NDArray[np.float64]
@@ -564,6 +567,147 @@ def map_allocator(out_dir: str | Path | None, prefix: str = "") -> Allocator:
     return allocate
 
 
+class DerivedMap:
+    """A read-only full-size map that is *not stored*: computed element-wise from stored maps on access.
+
+    ``func(*sources)`` must be element-wise (so it commutes with indexing); every source has this map's
+    ``shape`` (use ``np.broadcast_to`` views for lower-dimensional ones). Indexing (``m[r0:r1]``,
+    ``m[..., c][mask]``) evaluates only the selection; ``np.asarray(m)`` materializes the whole map in RAM
+    (row tiles of 256, so temporaries stay small); other ndarray attributes and arithmetic go through that
+    materialization. ``definition`` says how the map is derived (copied into the provenance / sidecar).
+    """
+
+    __array_priority__ = 20.0
+    _rows = 256
+
+    def __init__(self, func: Callable[..., Any], sources: tuple[Any, ...], shape: tuple[int, ...],
+                 dtype: Any = np.float32, definition: str = "") -> None:
+        self._func = func
+        self._sources = tuple(sources)
+        self.shape = tuple(int(n) for n in shape)
+        self.dtype = np.dtype(dtype)
+        self.definition = definition
+        for src in self._sources:
+            if tuple(np.shape(src)) != self.shape:
+                raise ValueError(f"source of shape {np.shape(src)} for a derived map of shape {self.shape}")
+
+    @property
+    def ndim(self) -> int:
+        return len(self.shape)
+
+    @property
+    def size(self) -> int:
+        return int(np.prod(self.shape))
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def _eval(self, key: Any) -> NDArray[Any]:
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            return np.asarray(self._func(*(src[key] for src in self._sources)), dtype=self.dtype)
+
+    def __getitem__(self, key: Any) -> NDArray[Any]:
+        return self._eval(key)
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> NDArray[Any]:
+        out = np.empty(self.shape, self.dtype)
+        for r0 in range(0, max(self.shape[0], 1), self._rows):
+            out[r0:r0 + self._rows] = self._eval(slice(r0, r0 + self._rows))
+        return out if dtype is None else out.astype(dtype, copy=False)
+
+    def __getattr__(self, name: str) -> Any:
+        if name.startswith("_"):
+            raise AttributeError(name)
+        return getattr(np.asarray(self), name)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(shape={self.shape}, dtype={self.dtype}, {self.definition!r})"
+
+
+def _binary(op: Callable[[Any, Any], Any], reflected: bool) -> Callable[[Any, Any], Any]:
+    if reflected:
+        return lambda self, other: op(other, np.asarray(self))
+    return lambda self, other: op(np.asarray(self), other)
+
+
+import operator as _op  # noqa: E402
+
+for _name, _f in (("add", _op.add), ("sub", _op.sub), ("mul", _op.mul), ("truediv", _op.truediv),
+                  ("pow", _op.pow), ("matmul", _op.matmul), ("lt", _op.lt), ("le", _op.le), ("gt", _op.gt),
+                  ("ge", _op.ge), ("eq", _op.eq), ("ne", _op.ne), ("and", _op.and_), ("or", _op.or_)):
+    setattr(DerivedMap, f"__{_name}__", _binary(_f, False))
+    if _name not in ("lt", "le", "gt", "ge", "eq", "ne"):
+        setattr(DerivedMap, f"__r{_name}__", _binary(_f, True))
+DerivedMap.__neg__ = lambda self: -np.asarray(self)  # type: ignore[attr-defined]
+DerivedMap.__invert__ = lambda self: ~np.asarray(self)  # type: ignore[attr-defined]
+DerivedMap.__hash__ = None  # type: ignore[assignment]
+
+
+def _unit(v: NDArray[np.float32]) -> NDArray[np.float32]:
+    """v / |v| over the last axis, in float32 exactly as compute_maps forms it (sqrt(x^2 + y^2 + z^2))."""
+    x, y, z = v[..., 0], v[..., 1], v[..., 2]
+    n = np.sqrt(x * x + y * y + z * z)
+    return v / n[..., None]
+
+
+class UnitVectorMap(DerivedMap):
+    """``diffuse_normals`` = ``diffuse_vectors`` / |``diffuse_vectors``| (H, W, 3 channels, 3 xyz), derived on
+    access (a normalization over the last axis: the leading part of a key selects the vectors first)."""
+
+    def __init__(self, vectors: Any) -> None:
+        super().__init__(_unit, (vectors,), np.shape(vectors), np.float32,
+                         "diffuse_vectors / |diffuse_vectors| (per channel)")
+
+    def _eval(self, key: Any) -> NDArray[Any]:
+        src = self._sources[0]
+        k = key if isinstance(key, tuple) else (key,)
+        nd = self.ndim
+        if any(e is None for e in k) or sum(e is Ellipsis for e in k) > 1:
+            return np.asarray(self)[key]
+        ell = [j for j, e in enumerate(k) if e is Ellipsis]
+        if ell:
+            i = ell[0]
+            used = sum(np.ndim(e) if isinstance(e, np.ndarray) and e.dtype == bool else 1
+                       for e in k if e is not Ellipsis)
+            k = k[:i] + (slice(None),) * (nd - used) + k[i + 1:]
+        used = sum(np.ndim(e) if isinstance(e, np.ndarray) and e.dtype == bool else 1 for e in k)
+        if used < nd:  # the last axis is not indexed
+            k = k + (slice(None),) * (nd - used)
+        last = k[-1]
+        lead = k[:-1]
+        advanced = any(isinstance(e, (np.ndarray, list)) for e in lead)
+        if advanced and not (isinstance(last, slice) and last == slice(None)):
+            return np.asarray(self)[key]
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            return np.asarray(_unit(np.asarray(src[lead + (slice(None),)], dtype=np.float32))[..., last])
+
+
+def tile_workers(workers: int | None) -> int:
+    """Threads over row tiles: ``workers`` if given (>= 1), else min(2, CPUs). numpy releases the GIL inside its
+    array operations, so tiles overlap; each tile writes only its own rows, so the result does not depend on it."""
+    import os
+
+    if workers is None:
+        return max(1, min(2, os.cpu_count() or 1))
+    if int(workers) < 1:
+        raise ValueError("workers must be >= 1")
+    return int(workers)
+
+
+def _run_tiles(fn: Callable[[int, int], None], H: int, tile_rows: int, workers: int) -> None:
+    """fn(r0, r1) over the row tiles, in ``workers`` threads (in order when 1); exceptions propagate."""
+    starts = list(range(0, H, tile_rows))
+    if workers <= 1 or len(starts) <= 1:
+        for r0 in starts:
+            fn(r0, min(H, r0 + tile_rows))
+        return
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=workers) as ex:
+        for f in [ex.submit(fn, r0, min(H, r0 + tile_rows)) for r0 in starts]:
+            f.result()
+
+
 def _flat(a: NDArray[Any], n: int) -> NDArray[Any]:
     """(H, W, *rest) output array viewed as (H*W, *rest) without copying (outputs are allocated contiguous)."""
     if not a.flags.c_contiguous:  # pragma: no cover - allocators return C-contiguous arrays
@@ -757,7 +901,8 @@ def compute_maps(frames: Mapping[Any, ArrayLike], *, albedo_scale: ArrayLike, le
                  surface_radius_mm: float = 0.0, lut: ResponseLUT | None = None, lut_size: int = 65,
                  lut_smoothing_rad: float | None = None, iterations: int = 2,
                  max_length: float = 1.3, exposure_s: Mapping[Any, float] | None = None,
-                 out_dir: str | Path | None = None) -> GradientMaps:
+                 out_dir: str | Path | None = None, workers: int | None = None,
+                 consistency: bool = True) -> GradientMaps:
     """Diffuse albedo / normals (per RGB channel) and specular albedo / normals from gradient frames.
 
     ``frames``: {key: (H, W, 3) linear array} with keys ``(pattern, polarization)`` or bare pattern names
@@ -784,7 +929,11 @@ def compute_maps(frames: Mapping[Any, ArrayLike], *, albedo_scale: ArrayLike, le
     must share one exposure.
     ``out_dir``: write every output map tile by tile into ``<name>.npy`` memory maps in this folder
     (:func:`map_allocator`) instead of RAM; then nothing of frame size is held in memory (``view_dirs`` given as a
-    (3,) vector is stored as a zero-stride broadcast view either way).
+    (3,) vector is stored as a zero-stride broadcast view either way). ``diffuse_normals`` is not stored: it is a
+    :class:`UnitVectorMap` of ``diffuse_vectors`` (normalized on access, bit-identical to normalizing in the
+    loop); ``provenance["stored"]`` / ``["derived"]`` list what was written and how the rest is derived.
+    ``workers``: threads over row tiles (:func:`tile_workers`; default min(2, CPUs)); results do not depend on it.
+    ``consistency=False``: skip the diagnostic ``consistency`` map (None; LED mode then also skips the residual).
     """
     if not ideal and leds is None and lut is None:
         raise ValueError("pass leds= (discrete LED correction) or ideal=True (continuous formulas)")
@@ -825,6 +974,7 @@ def compute_maps(frames: Mapping[Any, ArrayLike], *, albedo_scale: ArrayLike, le
         raise ValueError("albedo_scale must be finite and > 0")
     if tile_rows < 1:
         raise ValueError("tile_rows must be >= 1")
+    n_workers = tile_workers(workers)
     # validate pattern completeness early (raises a clear ValueError)
     _ideal_vectors({p: np.ones((1, 1, 3)) for p in cross})
     spec_pats = [p for p in par if p in cross]
@@ -872,10 +1022,10 @@ def compute_maps(frames: Mapping[Any, ArrayLike], *, albedo_scale: ArrayLike, le
     f32 = np.float32
     alloc = map_allocator(out_dir)
     npx = H * W
-    have_cons = (not ideal) or ("full" in cross and any(a in cross and a + "_c" in cross for a in _AXES))
+    have_cons = consistency and ((not ideal) or ("full" in cross and any(a in cross and a + "_c" in cross
+                                                                         for a in _AXES)))
     albedo = alloc("albedo", (H, W, 3), f32)
     dvec = alloc("diffuse_vectors", (H, W, 3, 3), f32)
-    dnorm = alloc("diffuse_normals", (H, W, 3, 3), f32)
     cons_out = alloc("consistency", (H, W, 3), f32) if have_cons else None
     m_sat = alloc("mask_saturated", (H, W, 3), bool)
     m_dark = alloc("mask_dark", (H, W, 3), bool)
@@ -894,7 +1044,7 @@ def compute_maps(frames: Mapping[Any, ArrayLike], *, albedo_scale: ArrayLike, le
         vd_store = vd_in
     else:
         vd_store = np.broadcast_to(v3, (H, W, 3))
-    out = {"albedo": _flat(albedo, npx), "dvec": _flat(dvec, npx), "dnorm": _flat(dnorm, npx),
+    out = {"albedo": _flat(albedo, npx), "dvec": _flat(dvec, npx),
            "sat": _flat(m_sat, npx), "dark": _flat(m_dark, npx), "inc": _flat(m_inc, npx),
            "graz": _flat(m_graz, npx), "bg": _flat(m_bg, npx)}
     if cons_out is not None:
@@ -915,9 +1065,8 @@ def compute_maps(frames: Mapping[Any, ArrayLike], *, albedo_scale: ArrayLike, le
     cross_keys = [("ambient", amb_c_key)] + [(p, (p, "cross")) for p in used]
     par_keys = ([("ambient", amb_p_key)] + [(p, (p, "parallel")) for p in spec_pats]) if want_spec else []
 
-    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):  # garbage pixels become NaN + masks
-        for r0 in range(0, H, tile_rows):
-            r1 = min(H, r0 + tile_rows)
+    def tile(r0: int, r1: int) -> None:
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):  # garbage pixels become NaN + masks
             t_c = {p: _read(keyed[k], r0, r1) for p, k in cross_keys}
             t_p = {p: _read(keyed[k], r0, r1) for p, k in par_keys}
             t_vd = _read(vd_in, r0, r1) if vd_in is not None else None
@@ -959,14 +1108,14 @@ def compute_maps(frames: Mapping[Any, ArrayLike], *, albedo_scale: ArrayLike, le
                     n0 = _finite_or(_mean_direction(comps, w0), vt)
                     n_it = max(1, iterations)
                     for it in range(n_it):
-                        rho_full, nt, res = _led_solve(table, Y, n0, residual=it == n_it - 1)
+                        rho_full, nt, res = _led_solve(table, Y, n0, residual=have_cons and it == n_it - 1)
                         if it < n_it - 1:
                             n0 = _finite_or(_mean_direction(nt, np.where(rho_full > 0, rho_full, 0.0)), n0)
                     vc = [tau * c for c in nt]
                 vlen = _norm3(*vc)
                 length = vlen / tau
                 inc = bad | ~np.isfinite(length) | ~(rho_full > 0) | ~(length > 0) | (length > max_length)
-                unit = [c / vlen for c in vc]
+                unit = [c / vlen for c in vc] if t_gn is None else None
                 # specular
                 spec_n = None
                 if want_spec:
@@ -995,6 +1144,7 @@ def compute_maps(frames: Mapping[Any, ArrayLike], *, albedo_scale: ArrayLike, le
                 if t_gn is not None:
                     n_geo = np.asarray(t_gn[b0:b1], dtype=f32)
                 else:
+                    assert unit is not None
                     n_geo = _mean_direction(unit, np.where(dark | inc, 0.0, 1.0).astype(f32))
                     if spec_n is not None:
                         n_geo = np.where(np.isfinite(spec_n), spec_n, n_geo)
@@ -1008,12 +1158,10 @@ def compute_maps(frames: Mapping[Any, ArrayLike], *, albedo_scale: ArrayLike, le
                 o_alb = out["albedo"][o0:o1]
                 o_alb[...] = alb
                 np.copyto(o_alb, nan, where=unk)
-                dv, dn = out["dvec"][o0:o1], out["dnorm"][o0:o1]
+                dv = out["dvec"][o0:o1]
                 for k in range(3):
                     dv[..., k] = vc[k]
-                    dn[..., k] = unit[k]
                 np.copyto(dv, nan, where=unk[..., None])
-                np.copyto(dn, nan, where=unk[..., None])
                 if cons_out is not None:
                     assert res is not None
                     o_c = out["cons"][o0:o1]
@@ -1028,6 +1176,7 @@ def compute_maps(frames: Mapping[Any, ArrayLike], *, albedo_scale: ArrayLike, le
                 if vd_out is not None:
                     vd_out[o0:o1] = vt
 
+    _run_tiles(tile, H, tile_rows, n_workers)
     masks = GradientMasks(m_sat, m_dark, m_inc, m_graz, m_bg)
     prov: dict[str, Any] = {
         "module": "estimation.gradients", "version": 2, "method": "Ma2007",
@@ -1040,11 +1189,17 @@ def compute_maps(frames: Mapping[Any, ArrayLike], *, albedo_scale: ArrayLike, le
         "tile_rows": tile_rows, "iterations": iterations,
         "exposure_s": None if exposure_s is None else {f"{k[0]}/{k[1]}": v for k, v in expo.items()},
         "storage": "RAM" if out_dir is None else f"memory maps in {out_dir}",
+        "stored": sorted(["albedo", "diffuse_vectors", "mask_saturated", "mask_dark", "mask_inconsistent",
+                          "mask_grazing", "mask_background"] + (["consistency"] if cons_out is not None else [])
+                         + (["specular_albedo", "specular_normals", "reflection_vectors", "specular_unknown"]
+                            if want_spec else [])),
+        "derived": {"diffuse_normals": "diffuse_vectors / |diffuse_vectors| (per channel), on access"},
+        "workers": n_workers,
     }
     if table is not None and lut is not None:
         prov["lut"] = {"size": lut.size, "smoothing_rad": lut.smoothing_rad, "solve_grid": table.size,
                        **lut.provenance}
     return GradientMaps(
-        albedo=albedo, diffuse_vectors=dvec, diffuse_normals=dnorm, masks=masks, tau_ratio=tau, eta=float(eta),
+        albedo=albedo, diffuse_vectors=dvec, diffuse_normals=UnitVectorMap(dvec), masks=masks, tau_ratio=tau, eta=float(eta),
         view_dirs=vd_store, specular_albedo=s_alb, specular_normals=s_norm, reflection_vectors=s_refl,
         specular_unknown=s_unk, consistency=cons_out, provenance=prov)

@@ -579,3 +579,57 @@ class McProfileTable:
 def default_table() -> McProfileTable:
     """The packaged table, loaded once per process."""
     return McProfileTable.load()
+
+
+# ---------------------------------------------------------------------------------------------------- additions
+# (issue 8 item 3/4 for the gradients estimator: the table's second radial moment, like the dipoles'
+# second_moment_factor_G; nothing above is changed)
+_GL8_X, _GL8_W = np.polynomial.legendre.leggauss(8)
+
+
+def second_moment_factor(alpha_prime: ArrayLike, eta: float, *, table: "McProfileTable | None" = None,
+                         out_of_range: str = "raise", panels: int = 48) -> Array:
+    """G_mc(alpha', eta) with <r^2> = l'^2 G_mc, l' = 1/sigma_t': the normalized second radial moment
+    int r^2 R dA / R_d of the table's half-space profile in optical units (the analogue of the Jensen dipole's
+    :func:`estimation.dipole.second_moment_factor_G`).
+
+    Integration by parts, int_0^inf r^2 dC = int_0^inf 2 r T(r) dr (T = R_d - C, from its own log representation:
+    no cancellation), evaluated as int 2 r^2 T d(ln r) by composite 8-point Gauss-Legendre over ``panels`` panels of
+    ln r from 1e-6 to max(rho_max, 60/k) + 60/k (k the exact far-field decay constant: the table's exponential tail
+    beyond rho_max is integrated to e^-60). Converged to < 1e-6 relative with the default panels (checked against
+    twice as many). Infinite where alpha' = 1 (sigma_a = 0).
+    """
+    tab = default_table() if table is None else table
+    a = np.atleast_1d(_f64(alpha_prime))
+    shape = a.shape
+    a = a.ravel()
+    out = np.full(a.shape, np.inf)
+    ok = a < 1.0
+    if not np.any(ok):
+        return out.reshape(np.shape(alpha_prime))
+    av = a[ok]
+    if out_of_range == "clip":
+        av = np.clip(av, *tab.alpha_prime_range)
+    k = decay_constant(av)
+    r_hi = np.maximum(tab.radius_range[1], 60.0 / k) + 60.0 / k
+    lo = np.log(1e-6)
+    edges = np.linspace(0.0, 1.0, panels + 1)
+    # nodes in ln r: (n, panels * 8)
+    t = ((edges[:-1, None] + edges[1:, None]) / 2 + (edges[1:, None] - edges[:-1, None]) / 2 * _GL8_X).ravel()
+    w = np.broadcast_to(((edges[1:] - edges[:-1])[:, None] / 2) * _GL8_W, (panels, 8)).ravel()
+    span = np.log(r_hi) - lo
+    x = lo + t[None, :] * span[:, None]
+    u = np.log(av) - np.log1p(-av)
+    _, log_t, _, log_rd = tab._log_eval(np.exp(x), u[:, None], np.full((av.size, 1), float(eta)), out_of_range)
+    integrand = 2.0 * np.exp(2.0 * x + log_t - log_rd)  # 2 r^2 T / R_d
+    out[ok] = np.sum(integrand * w[None, :], axis=1) * span
+    return out.reshape(shape)
+
+
+def second_moment_mm2(sigma_s_prime_per_mm: ArrayLike, sigma_a_per_mm: ArrayLike, eta: float, *,
+                      out_of_range: str = "raise") -> Array:
+    """<r^2> [mm^2] of the table's normalized half-space profile at (sigma_s', sigma_a): G_mc(alpha') / sigma_t'^2
+    (like :func:`estimation.dipole.second_moment_mm2`)."""
+    ssp, sa = np.broadcast_arrays(_f64(sigma_s_prime_per_mm), _f64(sigma_a_per_mm))
+    st = ssp + sa
+    return second_moment_factor(ssp / st, eta, out_of_range=out_of_range) / (st * st)

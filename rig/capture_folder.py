@@ -788,27 +788,41 @@ inside the output folder (deleted afterwards) instead of RAM: a 24 MP capture's 
 
 
 def estimate_capture(capture: Capture, out_dir: str | Path, fmt: str = "exr", tile_rows: int | None = None, *,
-                     preview: str = "auto", memmap_min_px: int = MEMMAP_MIN_PX) -> dict[str, Any]:
+                     preview: str = "auto", memmap_min_px: int = MEMMAP_MIN_PX,
+                     model: str = "dipole-jensen", maps: Any = None, half: bool = False) -> dict[str, Any]:
     """Gradient maps (Ma et al. 2007), the grounded diffusion estimate (with a sphere) and the seed's D (with a
     seed calibration) for a loaded capture; writes the maps into ``out_dir`` (:func:`rig.maps_io.write_maps`) and
     returns a JSON-ready summary (per-channel medians, the diffusion summary with intervals, files, notes).
 
     ``fmt``: "exr" or "tiff"; ``tile_rows``: rows per processing tile of ``compute_maps`` (None: its default);
-    ``memmap_min_px``: see :data:`MEMMAP_MIN_PX`.
+    ``memmap_min_px``: see :data:`MEMMAP_MIN_PX`. ``model``: profile model of the grounded estimate
+    (:data:`estimation.diffusion.MODELS_GROUNDED`): "dipole-jensen" (default) uses the exact sphere integrals
+    (method "sphere"); "dipole-better" and "mc-table" use the first-order method "small_blur" with that model's
+    half-space R_d and <r^2>. The summary and sidecar record the model and its bias against the Monte Carlo table
+    at the fitted parameters (``diffusion.model_bias``). ``maps``: names of the map files to write (None: all;
+    :func:`rig.maps_io.select_maps`), ``half``: normals and albedos as EXR HALF (:data:`rig.maps_io.HALF_OK`);
+    the sidecar lists what was written and how the left-out maps are derived.
     """
+    from estimation.diffusion import check_grounded_model
+
+    try:
+        check_grounded_model(model, "sphere" if model == "dipole-jensen" else "small_blur", capture.radiometry.eta)
+    except ValueError as exc:
+        raise ConfigError("--model", "model", str(exc), model) from None
     Path(out_dir).mkdir(parents=True, exist_ok=True)
     scratch = (tempfile.TemporaryDirectory(prefix=".scratch-", dir=out_dir)
                if capture.shape[0] * capture.shape[1] >= memmap_min_px else None)
     try:
         return _estimate_capture(capture, out_dir, fmt, tile_rows, preview,
-                                 None if scratch is None else Path(scratch.name))
+                                 None if scratch is None else Path(scratch.name), model, maps, half)
     finally:
         if scratch is not None:
             scratch.cleanup()
 
 
 def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows: int | None, preview: str,
-                      scratch: Path | None) -> dict[str, Any]:
+                      scratch: Path | None, model: str = "dipole-jensen", select: Any = None,
+                      half: bool = False) -> dict[str, Any]:
     from estimation.diffusion import compare_estimates, diffusion_seed, estimate_sphere, sphere_geometry
     from estimation.gradients import compute_maps
 
@@ -841,7 +855,7 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
                             view_dirs=view, tile_rows=tile_rows or 256, white_level=1.0,
                             saturation=rad.saturation_level, dark_threshold=rad.dark_level, object_mask=obj,
                             geometry_normals=geo_normals, reference_normal=n_ref, surface_center_mm=center,
-                            surface_radius_mm=radius, exposure_s=exposure,
+                            surface_radius_mm=radius, exposure_s=exposure, consistency=False,
                             out_dir=None if scratch is None else scratch / "gradients")
     except ValueError as exc:
         raise CaptureError(f"{cap.file}: gradient maps failed: {exc}") from exc
@@ -852,10 +866,12 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
     diff_summary: dict[str, Any]
     if cap.geometry is not None:
         assert normals is not None
+        method = "sphere" if model == "dipole-jensen" else "small_blur"
         est = estimate_sphere(maps, radius_mm=cap.geometry.radius_mm, true_normals=normals, region=obj,
-                              tile_rows=tile_rows or 256, out_dir=None if scratch is None else scratch / "diffusion")
+                              tile_rows=tile_rows or 256, out_dir=None if scratch is None else scratch / "diffusion",
+                              method=method, model=model)
         diffusion = est.maps
-        diff_summary = {"estimator": "grounded sphere (docs/gradients.md sec. 5)", **est.summary.as_dict()}
+        diff_summary = {"estimator": f"grounded {method} (docs/gradients.md sec. 5)", **est.summary.as_dict()}
     else:
         diff_summary = {"estimator": "grounded", "status": ["unknown"] * 3,
                         "reason": "no geometry ([object] shape = \"sphere\" with center_mm, radius_mm): a region "
@@ -905,13 +921,16 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
                    **({"center_mm": cap.geometry.center_mm, "radius_mm": cap.geometry.radius_mm}
                       if cap.geometry else {})},
         "seed": None if cap.seed is None else {"k_mm": cap.seed.k_mm, **cap.seed.provenance},
-        "parameters": {"format": fmt, "tile_rows": tile_rows or 256},
+        "parameters": {"format": fmt, "tile_rows": tile_rows or 256, "model": model,
+                       "maps": "all" if select is None else list(select), "half": bool(half)},
         "gradients": maps.provenance,
         "diffusion": None if diffusion is None else _strip_gradients(diffusion.provenance),
     }
     try:
         files = write_maps(out_dir, maps, diffusion, fmt=fmt, provenance=prov, seed=seed_est, preview=preview,
-                           extra_sidecar={"summary": jsonable(summary)})
+                           extra_sidecar={"summary": jsonable(summary)}, select=select, half=half)
+    except ValueError as exc:
+        raise ConfigError("--maps/--half", "maps", str(exc), select) from None
     except OSError as exc:
         raise CaptureError(f"{out_dir}: cannot write the maps ({exc})") from exc
     summary["files"] = {k: str(p) for k, p in files.items()}
@@ -951,14 +970,22 @@ def format_summary(s: Mapping[str, Any]) -> str:
 
 
 def run_cli(args: Any) -> int:
-    """``rig estimate gradients FOLDER [--out DIR] [--format exr|tiff] [--tile-rows N] [--json]``."""
+    """``rig estimate gradients FOLDER [--out DIR] [--format exr|tiff] [--tile-rows N] [--model M] [--json]``."""
     folder = Path(args.folder)
     out = Path(args.out) if getattr(args, "out", None) else folder / "maps"
     tile_rows = getattr(args, "tile_rows", None)
     if tile_rows is not None and tile_rows < 1:
         raise ConfigError("--tile-rows", "tile_rows", "an integer >= 1", tile_rows)
     cap = load_capture(folder)
-    summary = estimate_capture(cap, out, getattr(args, "format", "exr") or "exr", tile_rows)
+    from .maps_io import select_maps
+
+    try:
+        sel = select_maps(getattr(args, "maps", None))
+    except ValueError as exc:
+        raise ConfigError("--maps", "maps", str(exc), getattr(args, "maps", None)) from None
+    summary = estimate_capture(cap, out, getattr(args, "format", "exr") or "exr", tile_rows,
+                               model=getattr(args, "model", None) or "dipole-jensen", maps=sel,
+                               half=bool(getattr(args, "half", False)))
     if getattr(args, "json", False):
         print(json.dumps(summary, indent=2))
     else:

@@ -343,6 +343,17 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--out", type=Path, default=None, help="output folder for the maps (default: FOLDER/maps)")
     q.add_argument("--format", choices=["exr", "tiff"], default="exr", help="float map file format")
     q.add_argument("--tile-rows", type=int, default=None, help="rows per processing tile (bounded memory)")
+    q.add_argument("--model", choices=["dipole-jensen", "dipole-better", "mc-table"], default="dipole-jensen",
+                   help="profile model of the diffusion estimate (default dipole-jensen: exact sphere integrals; the "
+                        "others use the first-order small-blur method); its bias against the Monte Carlo table is "
+                        "reported (docs/gradients.md)")
+    q.add_argument("--maps", default=None, metavar="NAMES",
+                   help="comma-separated map files to write (default all): albedo_diffuse, normals_diffuse, "
+                        "diffuse_length, albedo_specular, normals_specular, R_d, alpha_prime, D_mm, "
+                        "sigma_s_prime_per_mm, sigma_a_per_mm, shortening, D_seed_mm; maps.json says how the "
+                        "others follow (docs/capture-folder.md)")
+    q.add_argument("--half", action="store_true",
+                   help="write normals and albedos as EXR HALF (float16); the diffusion maps stay float32")
     q.add_argument("--json", action="store_true", help="print the summary as JSON instead of a table")
     p.set_defaults(func=_cmd_estimate)
 

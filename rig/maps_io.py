@@ -38,13 +38,14 @@ from numpy.typing import NDArray
 
 from drivers.errors import RigError
 from estimation.diffusion import DiffusionMaps, SeedEstimate
-from estimation.gradients import GradientMaps
+from estimation.gradients import DerivedMap, GradientMaps
 
 from .imageio import atomic_write, write_exr, write_float_tiff, write_png8
 from .provenance import jsonable, sha256_file
 
 __all__ = ["MAPS_FORMAT", "MAPS_FORMAT_VERSION", "SIDECAR", "PREVIEW", "MASKS", "MASK_BITS", "MAP_SPECS",
-           "PREVIEW_TILE_PX", "MapSpec", "MapsError", "LoadedMaps", "write_maps", "read_maps", "preview_size_px"]
+           "PREVIEW_TILE_PX", "MapSpec", "MapsError", "LoadedMaps", "write_maps", "read_maps", "preview_size_px",
+           "DERIVATIONS", "HALF_OK", "select_maps"]
 
 MAPS_FORMAT = "sssrig-maps"
 MAPS_FORMAT_VERSION = 1
@@ -133,6 +134,39 @@ MAP_SPECS: dict[str, MapSpec] = {s.name: s for s in [
 ]}
 
 
+#: how a map that was left out (``write_maps(select=...)``) follows from the others; recorded in the sidecar's
+#: ``not_written`` with the files it needs (a map whose sources were left out too is marked not derivable).
+DERIVATIONS: dict[str, tuple[str, tuple[str, ...]]] = {
+    "sigma_s_prime_per_mm": ("alpha_prime / (3 D_mm)", ("alpha_prime", "D_mm")),
+    "sigma_a_per_mm": ("(1 - alpha_prime) / (3 D_mm)", ("alpha_prime", "D_mm")),
+    "D_mm": ("1 / (3 (sigma_s_prime_per_mm + sigma_a_per_mm))", ("sigma_s_prime_per_mm", "sigma_a_per_mm")),
+    "alpha_prime": ("sigma_s_prime_per_mm / (sigma_s_prime_per_mm + sigma_a_per_mm)",
+                    ("sigma_s_prime_per_mm", "sigma_a_per_mm")),
+    "R_d": ("half-space R_d(alpha_prime, eta) of the model in provenance.diffusion.model (Jensen: "
+            "0.5 a (1 + exp(-4/3 A s)) exp(-s), s = sqrt(3 (1 - a)), A = boundary_A(eta))", ("alpha_prime",)),
+}
+#: maps whose precision allows EXR HALF (``write_maps(half=...)``): unit vectors (half: < 0.03 deg) and albedos
+#: (relative 4.9e-4). The diffusion parameters, the shortening and |v|/tau stay float32: 1 - S ~ 1e-2..1e-1
+#: carries the length scale and half would quantize it by ~5e-4 absolute.
+HALF_OK: tuple[str, ...] = ("albedo_diffuse", "normals_diffuse_R", "normals_diffuse_G", "normals_diffuse_B",
+                            "albedo_specular", "normals_specular")
+
+
+def select_maps(spec: str | None) -> list[str] | None:
+    """Parse a ``--maps`` value: None / "all" -> None (every available map); else comma-separated names of
+    :data:`MAP_SPECS`, where "normals_diffuse" stands for the three channels. Unknown names raise ValueError."""
+    if spec is None or spec.strip() in ("", "all"):
+        return None
+    out: list[str] = []
+    for name in (t.strip() for t in spec.split(",") if t.strip()):
+        names = [f"normals_diffuse_{c}" for c in _RGB] if name == "normals_diffuse" else [name]
+        for n in names:
+            if n not in MAP_SPECS:
+                raise ValueError(f"unknown map {name!r}; valid: normals_diffuse, {', '.join(MAP_SPECS)}")
+            out.append(n)
+    return out
+
+
 # ---------------------------------------------------------------------------------------------- helpers
 
 
@@ -169,6 +203,10 @@ def _read_float(path: Path) -> NDArray[np.float32]:
 def _rgb(a: NDArray[Any] | None, name: str, shape: tuple[int, int]) -> NDArray[np.float32] | None:
     if a is None:
         return None
+    if isinstance(a, DerivedMap):  # computed when written (one map at a time in memory)
+        if a.shape != (*shape, 3):
+            raise ValueError(f"{name}: expected shape {(*shape, 3)}, got {a.shape}")
+        return a  # type: ignore[return-value]
     arr = np.asarray(a, dtype=np.float32)
     if arr.shape != (*shape, 3):
         raise ValueError(f"{name}: expected shape {(*shape, 3)}, got {arr.shape}")
@@ -215,7 +253,8 @@ def _tiles(arrays: Mapping[str, NDArray[np.float32]]) -> list[list[dict[str, Any
         return {"title": title, "kind": "rgb", "data": arrays.get(name), "unit": ""}
     rows = [[alb("albedo_diffuse", "diffuse albedo"), alb("albedo_specular", "specular albedo"),
              {"title": "specular normals", "kind": "normal", "data": arrays.get("normals_specular"), "unit": ""}],
-            [{"title": f"diffuse normals {c}", "kind": "normal", "data": arrays[f"normals_diffuse_{c}"], "unit": ""}
+            [{"title": f"diffuse normals {c}", "kind": "normal", "data": arrays.get(f"normals_diffuse_{c}"),
+              "unit": ""}
              for c in _RGB]]
     for name, label, unit in (("D_mm", "D", "mm"), ("sigma_s_prime_per_mm", "sigma_s'", "1/mm"),
                               ("sigma_a_per_mm", "sigma_a", "1/mm"), ("D_seed_mm", "D seed (relative)", "mm")):
@@ -372,7 +411,8 @@ def _write_preview(path: Path, arrays: Mapping[str, NDArray[np.float32]], title:
 # ---------------------------------------------------------------------------------------------- API
 def write_maps(out_dir: str | os.PathLike[str], maps: GradientMaps, diffusion: DiffusionMaps | None, *,
                fmt: str = "exr", provenance: Mapping[str, Any], seed: SeedEstimate | None = None,
-               preview: str = "auto", extra_sidecar: Mapping[str, Any] | None = None) -> dict[str, Path]:
+               preview: str = "auto", extra_sidecar: Mapping[str, Any] | None = None,
+               select: Any = None, half: Any = ()) -> dict[str, Path]:
     """Write every available map as one float file, ``masks.png``, ``preview.png`` and ``maps.json``.
 
     ``fmt``: "exr" (float32 OpenEXR, ZIP) or "tiff" (float32 TIFF, zlib). ``diffusion``: the grounded per-pixel
@@ -382,6 +422,11 @@ def write_maps(out_dir: str | os.PathLike[str], maps: GradientMaps, diffusion: D
     sidecar (capture folder, frames with sha256, calibration, parameters); ``extra_sidecar`` adds top-level keys
     (e.g. a summary). ``preview``: "auto" (matplotlib if installed, else OpenCV), "matplotlib" or "opencv".
 
+    ``select``: names of :data:`MAP_SPECS` to write (None: every available map); the sidecar's ``not_written``
+    lists each available map that was left out with how it follows from the written ones (:data:`DERIVATIONS`)
+    or that it does not. ``half``: names (or True for all of :data:`HALF_OK`) written as EXR HALF (float16;
+    only maps in :data:`HALF_OK`, EXR only); the sidecar's per-file ``dtype`` says which.
+
     Returns {name: path} for every file written (map names of :data:`MAP_SPECS`, plus "masks", "preview",
     "sidecar"). Existing files of the same names are replaced atomically; others in ``out_dir`` are left alone.
     """
@@ -390,21 +435,38 @@ def write_maps(out_dir: str | os.PathLike[str], maps: GradientMaps, diffusion: D
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     H, W = maps.shape
-    arrays = _collect(maps, diffusion, seed)
+    available = _collect(maps, diffusion, seed)
+    if select is not None:
+        chosen = list(select)
+        unknown = [n for n in chosen if n not in MAP_SPECS]
+        if unknown:
+            raise ValueError(f"unknown map names {unknown}; valid: {', '.join(MAP_SPECS)}")
+        arrays = {k: v for k, v in available.items() if k in chosen}
+    else:
+        arrays = available
+    half_set = set(HALF_OK) if half is True else set(half or ())
+    bad_half = sorted(half_set - set(HALF_OK))
+    if bad_half:
+        raise ValueError(f"maps {bad_half} must stay float32; half precision is allowed for {', '.join(HALF_OK)}")
+    if half_set and fmt != "exr":
+        raise ValueError("half precision needs fmt='exr' (the TIFF writer is float32 only)")
     ext = ".exr" if fmt == "exr" else ".tif"
     written: dict[str, Path] = {}
     files: dict[str, Any] = {}
-    for name, arr in arrays.items():
+    for name, lazy in arrays.items():
+        arr = np.asarray(lazy, dtype=np.float32)
         spec = MAP_SPECS[name]
         p = out / f"{name}{ext}"
         meta = {"quantity": spec.quantity, "unit": spec.unit, "channels": ",".join(spec.channels),
                 "nan": "unknown", "software": "sssrig", "sidecar": SIDECAR}
+        is_half = name in half_set
         if fmt == "exr":
-            write_exr(p, arr, attributes={f"sssrig_{k}": v for k, v in meta.items()})
+            write_exr(p, arr, attributes={f"sssrig_{k}": v for k, v in meta.items()}, half=is_half)
         else:
             write_float_tiff(p, arr, description=json.dumps(meta))
         written[name] = p
-        files[name] = {"file": p.name, **spec.sidecar(), "sha256": sha256_file(p),
+        files[name] = {"file": p.name, **spec.sidecar(), "dtype": "float16" if is_half else "float32",
+                       "sha256": sha256_file(p),
                        "known_fraction": [float(np.isfinite(arr[..., c]).mean()) for c in range(3)]}
     bits = _mask_field(maps, diffusion)
     pm = write_png8(out / MASKS, bits.astype(np.float32) / 255.0)
@@ -420,6 +482,11 @@ def write_maps(out_dir: str | os.PathLike[str], maps: GradientMaps, diffusion: D
         "file_format": {"exr": "OpenEXR float32, ZIP, channels R,G,B (vectors: x,y,z stored as R,G,B)",
                         "tiff": "TIFF float32, zlib, 3 samples per pixel (RGB photometric; vectors: x,y,z)"}[fmt],
         "files": files,
+        "not_written": {k: ({"derive": DERIVATIONS[k][0], "from": list(DERIVATIONS[k][1])}
+                            if k in DERIVATIONS and all(s in arrays for s in DERIVATIONS[k][1])
+                            else {"derive": None, "note": "left out (write_maps select); not derivable from the "
+                                                          "written files"})
+                        for k in available if k not in arrays},
         "masks": {"file": MASKS, "sha256": sha256_file(pm), "encoding": "8-bit RGB PNG; per colour channel a bit "
                   "field (per-pixel masks are set in all three channels)", "bits": dict(MASK_BITS)},
         "preview": {"file": PREVIEW, "backend": backend, "width_px": pw, "height_px": ph, "tiles": tiles,

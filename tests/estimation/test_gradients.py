@@ -459,11 +459,25 @@ def test_memory_mapped_outputs_equal_in_memory_results(rig, tmp_path) -> None:
     view[...] = VIEW
     ram = compute_maps(fr, albedo_scale=2.0, lut=lut, view_dirs=np.array(view), tile_rows=9)
     out = compute_maps(mm, albedo_scale=2.0, lut=lut, view_dirs=view, tile_rows=9, out_dir=tmp_path / "maps")
-    for name in ("albedo", "diffuse_vectors", "diffuse_normals", "consistency"):
+    for name in ("albedo", "diffuse_vectors", "consistency"):
         a, b = getattr(ram, name), getattr(out, name)
         assert isinstance(b, np.memmap)
         np.testing.assert_array_equal(a, b)
         np.testing.assert_array_equal(np.load(tmp_path / "maps" / f"{name}.npy"), a)
+    # diffuse_normals is derived on access (not written), bit-identical to normalizing the stored vectors
+    assert not (tmp_path / "maps" / "diffuse_normals.npy").exists()
+    assert "diffuse_normals" in out.provenance["derived"] and "diffuse_vectors" in out.provenance["stored"]
+    np.testing.assert_array_equal(np.asarray(ram.diffuse_normals), np.asarray(out.diffuse_normals))
+    v = np.asarray(out.diffuse_vectors)
+    with np.errstate(invalid="ignore"):
+        np.testing.assert_array_equal(np.asarray(out.diffuse_normals),
+                                      v / np.sqrt(v[..., 0] ** 2 + v[..., 1] ** 2 + v[..., 2] ** 2)[..., None])
+    # partial reads select first, then normalize: every key form gives the same as the full map
+    full = np.asarray(out.diffuse_normals)
+    k = ~out.unknown[..., 1]
+    for key in ((..., 1, slice(None)), (slice(3, 9),), (slice(None), slice(None), 2, 0), (k,), (5, 7, 1),
+                (..., 2)):
+        np.testing.assert_array_equal(out.diffuse_normals[key], full[key])
     np.testing.assert_array_equal(ram.unknown, out.unknown)
     assert np.load(tmp_path / "maps" / "mask_background.npy").shape == (40, 40)
     assert out.view_dirs is view and out.provenance["storage"].startswith("memory maps")
@@ -473,8 +487,8 @@ def test_memory_mapped_outputs_equal_in_memory_results(rig, tmp_path) -> None:
 
 def test_working_memory_is_bounded_by_the_tile(rig, tmp_path) -> None:
     """With memory-mapped frames and out_dir, the numpy memory allocated during compute_maps (tracemalloc: numpy
-    registers its buffers) stays far below the frame set (115 MB here): blocks of 16384 pixels (~10 MB of
-    temporaries with all seven patterns), never a frame-sized array."""
+    registers its buffers) stays far below the frame set (92 MB here): blocks of 16384 pixels (~20 MB of
+    temporaries with all seven patterns) per worker thread, never a frame-sized array."""
     import tracemalloc
 
     leds, lut = rig
@@ -486,9 +500,30 @@ def test_working_memory_is_bounded_by_the_tile(rig, tmp_path) -> None:
         mm[k][...] = np.tile(a, (2, 3, 1))
     frame_set = len(mm) * H * W * 3 * 4
     compute_maps({k: v[:8] for k, v in mm.items()}, albedo_scale=2.0, lut=lut)  # solve table built and cached
-    tracemalloc.start()
-    m = compute_maps(mm, albedo_scale=2.0, lut=lut, tile_rows=64, out_dir=tmp_path / "maps")
-    peak = tracemalloc.get_traced_memory()[1]
-    tracemalloc.stop()
-    assert (~m.unknown).sum() > 0.5 * H * W
-    assert peak < 0.25 * frame_set, (peak, frame_set)
+    peaks = {}
+    for workers in (1, 2):  # each worker thread holds one block's temporaries
+        tracemalloc.start()
+        m = compute_maps(mm, albedo_scale=2.0, lut=lut, tile_rows=64, out_dir=tmp_path / "maps", workers=workers)
+        peaks[workers] = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        assert (~m.unknown).sum() > 0.5 * H * W
+        assert m.provenance["workers"] == workers
+    assert peaks[1] < 0.25 * frame_set, (peaks, frame_set)
+    assert peaks[2] < 2 * 0.25 * frame_set, (peaks, frame_set)
+
+
+def test_workers_and_skipping_consistency_do_not_change_the_maps(rig) -> None:
+    """Threads over tiles write disjoint rows: any worker count gives identical maps; consistency=False leaves out
+    only the diagnostic residual map (what ``rig estimate gradients`` and the benchmark run)."""
+    leds, lut = rig
+    n = sphere_normals(40)
+    fr = flat_led_frames(n, leds, np.array([0.7, 0.4, 0.2]), value_scale=0.5, ambient=0.003)
+    a = compute_maps(fr, albedo_scale=2.0, lut=lut, tile_rows=7, workers=1)
+    b = compute_maps(fr, albedo_scale=2.0, lut=lut, tile_rows=7, workers=2, consistency=False)
+    assert a.consistency is not None and b.consistency is None
+    assert "consistency" not in b.provenance["stored"] and b.provenance["workers"] == 2
+    for name in ("albedo", "diffuse_vectors"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    np.testing.assert_array_equal(a.unknown, b.unknown)
+    with pytest.raises(ValueError, match="workers"):
+        compute_maps(fr, albedo_scale=2.0, lut=lut, workers=0)

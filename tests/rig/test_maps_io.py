@@ -183,3 +183,51 @@ def test_writer_rejects_unknown_format(tmp_path, estimates) -> None:
     with pytest.raises(ValueError, match="'exr' or 'tiff'"):
         write_maps(tmp_path, maps, None, fmt="png", provenance=PROV)
     assert not list(Path(tmp_path).iterdir())
+
+
+def test_selection_lists_what_was_left_out_and_how_to_derive_it(tmp_path, estimates) -> None:
+    """``select`` writes only the named maps; maps.json names every left-out map with its derivation from the
+    written files, and the derivation reproduces the estimator's own map (float32 rounding)."""
+    from rig.maps_io import DERIVATIONS, select_maps
+
+    maps, dm, seed, _ = estimates
+    sel = select_maps("albedo_diffuse,normals_diffuse,alpha_prime,D_mm")
+    assert sel[:4] == ["albedo_diffuse", "normals_diffuse_R", "normals_diffuse_G", "normals_diffuse_B"]
+    with pytest.raises(ValueError, match="unknown map"):
+        select_maps("albedo,D")
+    assert select_maps("all") is None and select_maps(None) is None
+    files = write_maps(tmp_path, maps, dm, provenance=PROV, seed=seed, select=sel)
+    got = read_maps(tmp_path)
+    assert set(got.arrays) == set(sel) and not (tmp_path / "sigma_a_per_mm.exr").exists()
+    nw = got.sidecar["not_written"]
+    assert set(nw) == {"diffuse_length", "albedo_specular", "normals_specular", "R_d", "sigma_s_prime_per_mm",
+                       "sigma_a_per_mm", "shortening", "D_seed_mm"}
+    assert nw["sigma_a_per_mm"] == {"derive": DERIVATIONS["sigma_a_per_mm"][0], "from": ["alpha_prime", "D_mm"]}
+    assert nw["shortening"]["derive"] is None
+    a, D = got.arrays["alpha_prime"].astype(np.float64), got.arrays["D_mm"].astype(np.float64)
+    with np.errstate(invalid="ignore"):
+        np.testing.assert_allclose((1 - a) / (3 * D), np.asarray(dm.sigma_a_per_mm), rtol=1e-3, equal_nan=True)
+        np.testing.assert_allclose(a / (3 * D), np.asarray(dm.sigma_s_prime_per_mm), rtol=1e-5, equal_nan=True)
+    assert "sidecar" in files and "preview" in files
+
+
+def test_half_precision_for_normals_and_albedo_only(tmp_path, estimates) -> None:
+    """EXR HALF for unit vectors and albedos (< 0.03 deg, 4.9e-4 relative), refused for the diffusion maps."""
+    maps, dm, seed, _ = estimates
+    write_maps(tmp_path, maps, dm, provenance=PROV, half=True)
+    got = read_maps(tmp_path)
+    side = got.sidecar["files"]
+    assert side["normals_diffuse_R"]["dtype"] == "float16" and side["albedo_diffuse"]["dtype"] == "float16"
+    assert side["D_mm"]["dtype"] == "float32" and side["shortening"]["dtype"] == "float32"
+    n = got.arrays["normals_diffuse_G"]
+    ref = np.asarray(maps.diffuse_normals[..., 1, :])
+    assert np.array_equal(np.isnan(n), np.isnan(ref))
+    ok = np.isfinite(ref).all(-1)
+    cos = np.clip(np.sum(n[ok].astype(np.float64) * ref[ok], -1) / np.linalg.norm(n[ok], axis=-1), -1, 1)
+    assert np.degrees(np.arccos(cos)).max() < 0.03
+    np.testing.assert_allclose(got.arrays["albedo_diffuse"], maps.albedo, rtol=5e-4)
+    np.testing.assert_array_equal(got.arrays["D_mm"], np.asarray(dm.D_mm))
+    with pytest.raises(ValueError, match="must stay float32"):
+        write_maps(tmp_path / "x", maps, dm, provenance=PROV, half=["D_mm"])
+    with pytest.raises(ValueError, match="fmt='exr'"):
+        write_maps(tmp_path / "y", maps, dm, provenance=PROV, fmt="tiff", half=True)
