@@ -242,7 +242,7 @@ def estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, ligh
             sig_c = np.sqrt((sig / kappa_use) ** 2 + (obs / kappa_use ** 2) ** 2 * kappa_use_var)
         t_f = time.perf_counter()
         new = estimate_single_image(corrected, patches, lights, eta_f, model=base_model, noise_sigma=sig_c,
-                                    **fit_kwargs)
+                                    start_per_mm=np.stack([ssp, sa], axis=1), **fit_kwargs)
         fit_s = time.perf_counter() - t_f
         if not new:
             return replace(new, message=f"refit after reference iteration {it} failed: {new.message}",

@@ -1,0 +1,204 @@
+"""The single-image method on Monte Carlo frames of other scenes than the cube under a point light (issue 8 item 5).
+
+Scenes (64 x 64 px pinhole camera from the corner direction of benchmarks/mc_single_image.py, estimator patches
+<= 1.5 mm, 3 x 3 window means at the patch centres, MC standard error as noise_sigma, eta 1.3 unless stated):
+
+- ``cube-env``: the 20 mm analytic ``Box`` under a sky-like lat-long map (32 x 64, <= the estimators' max_size so
+  both sides see the same map): dim sky 0.15 + 0.1 cos(theta) above the horizon, 0.03 below, plus a broad "sun"
+  lobe 1.5 max(0, w.s)^3 towards s ~ (0.6, -0.6, 0.55): every face gets a different irradiance;
+- ``pyramid-env``: a square pyramid (20 mm base, 14 mm high, trimesh -> ``simulators.mc.Mesh``; a refracting
+  mesh at eta 1.3 is supported under distant light) under the same map;
+- ``pyramid-point``: the same pyramid at eta = 1.0 under the benchmark's point light (point lights through a
+  refracting mesh are not supported by the renderer).
+
+Materials (science.md sec. 2): marble-R (2.19, 0.002 /mm; l_d 8.5 mm, as large as the object) and skin1-R
+(0.74, 0.032 /mm; l_d 3.7 mm). Frames: seed ``SSSRIG_MC_SEED`` (default 1); references: seed 1000 for every
+render (common random numbers), at most 4 renders.
+
+Each case asserts
+1. the plain mc-table fit's bias (sign and rough size) as measured across frame seeds 1-3 (the flat half-space
+   sum is wrong near edges; under distant light a flat face is uniformly lit, so edges carry all the information
+   about sigma_s'); bounds are the measured range widened by ~10 points;
+2. the reference-corrected fit (estimate_with_reference + MonteCarloReference of the same shape, camera, lights)
+   meets the acceptance: sigma_s' within 10 %, sigma_a within 50 % or flagged non-identifiable with a 95 %
+   interval containing the truth.
+
+Measured (seeds 1, 2, 3; frame spp / reference spp as in CASES; errors sigma_s', sigma_a):
+
+| case | plain mc-table | mc-table+reference | s/seed |
+|---|---|---|---|
+| cube-env marble-R (128/64) | -32/-49, -37/-58 | -1.2/+16, -6.2/-2.5 % (256/128: -4.7/+1, -6.5/-6, -6.0/+4) | 6 |
+| cube-env skin1-R (256/128) | +30/-14, +25/-17, +27/-15 | +2.0/+2.4, -5.1/-4.4, -0.3/+1.3 | 5 |
+| pyramid-env marble-R (256/128) | -48/-99, -47/-99, -47/-99 (flagged) | +2.0, +6.9, +6.5; sigma_a flagged, CI 0-0.0033..0.0037 holds 0.002 | 2 |
+| pyramid-env skin1-R (256/128) | +24/-2 (seed 1; 128 and 1024 spp: +27..+32/+2..+4) | FAILS: -42..-54/-62..-72, flagged, CI misses truth | 2 |
+| pyramid-point eta 1 skin1-R (256/128) | -65/-100 (both seeds) | +2.9/+12, +2.7/+12, +1.1/+8 | 4 |
+| pyramid-point eta 1 marble-R (256/128) | -50/-100 | +2.4, +3.4, +0.7; sigma_a +80/+120/+47 % flagged, CI holds truth | 5 |
+
+At lower spp the reference iteration is noise-limited: cube-env skin1-R at 128/64 spp diverged for seed 2
+(sigma_s' +33 %), pyramid-point at 64/32 stopped at +15..+20 % after 4 renders; at 1024/256 spp the same cases
+give +4 %/+4 % and -2..+4 %. Hence 256-spp frames and 128-spp references for all but the marble cube (whose
+6144-patch fits dominate the time; 128/64 passes there).
+
+Formerly a failure: pyramid-env skin1-R. Not Monte Carlo noise (same at 1024/256 spp) and not the reference:
+estimate_single_image(model="mc-table", method="direct") fed its OWN noise-free prediction at the truth returned
+sigma_s' -66 %, sigma_a at its lower bound (0.25, 3e-6 /mm: rms residual 2.2 % where the truth has 0) -- a local
+minimum of the direct fit, reached from the best point of its start grid. The fit now also starts from every
+local minimum of that grid (and the reference loop passes its current iterate as a start), which finds the truth
+(residual 4e-16). ``test_fast_fit_recovers_its_own_prediction`` keeps it so.
+
+Known failure (xfail, strict): pyramid-env skin1-R with the reference. The corrected refits drift monotonically
+(seed 1, sigma_s' error by step: +24, +7.9, -6, -16, -26, -33 %; kappa median 1.06 -> 1.12): F(p) - p stays
+negative from +24 % to -33 %, so at this noise level the truth is not a fixed point of the iteration. The scene
+says little about sigma_s' (its 95 % interval is 0.28-0.88 /mm around the truth 0.74: 370 patches, l_d 3.7 mm,
+a uniformly lit face per side), so a small bias of kappa moves sigma_s' far. Not resolved: whether a
+1024-spp frame and 512-spp references remove it, or the iteration needs a secant step on F(p) - p.
+"""
+from __future__ import annotations
+
+import functools
+import os
+import time
+
+import numpy as np
+import pytest
+import trimesh
+
+from estimation.camera import PinholeCamera
+from estimation.model_correction import estimate_with_reference
+from estimation.single_image import EnvironmentMap, PointLights, estimate_single_image, patches_from_mesh, \
+    predict_radiance
+from rig.estimate import pixel_faces, sample_at_points
+from rig.mc_reference import MonteCarloReference
+
+MATERIALS = {"marble-R": (2.19, 0.002), "skin1-R": (0.74, 0.032)}   # science.md sec. 2 (marble: seed truth)
+TOL_SSP, TOL_SA = 0.10, 0.50
+SIZE, PATCH_MM, EDGE_MM = 64, 1.5, 20.0
+CAMERA_MM = (250.0, -300.0, 220.0)
+LIGHT_MM = (350.0, -600.0, 500.0)
+REFERENCE_SEED = 1000
+SEED = int(os.environ.get("SSSRIG_MC_SEED", "1"))   # the measured ranges come from seeds 1-3
+
+# name: shape, light, material, eta, frame spp, reference spp, plain (sigma_s' lo, hi), plain (sigma_a lo, hi)
+CASES = {
+    "cube-env-marble": ("cube", "env", "marble-R", 1.3, 128, 64, (-0.45, -0.25), (-0.70, -0.35)),
+    "cube-env-skin1": ("cube", "env", "skin1-R", 1.3, 256, 128, (0.15, 0.40), (-0.27, -0.05)),
+    "pyramid-env-marble": ("pyramid", "env", "marble-R", 1.3, 256, 128, (-0.58, -0.38), (-1.0, -0.90)),
+    "pyramid-env-skin1": ("pyramid", "env", "skin1-R", 1.3, 256, 128, (0.17, 0.41), (-0.10, 0.15)),
+    "pyramid-point-eta1-skin1": ("pyramid", "point", "skin1-R", 1.0, 256, 128, (-0.75, -0.55), (-1.0, -0.90)),
+    "pyramid-point-eta1-marble": ("pyramid", "point", "marble-R", 1.0, 256, 128, (-0.60, -0.40), (-1.0, -0.90)),
+}
+KNOWN_FAILURES = {"pyramid-env-skin1": "the reference iteration drifts away from the truth on this weakly "
+                                        "informative scene (module docstring)"}
+
+
+def sky_map(rows: int = 32) -> EnvironmentMap:
+    h, w = rows, 2 * rows
+    th = np.pi * (np.arange(h) + 0.5) / h
+    ph = 2 * np.pi * (np.arange(w) + 0.5) / w
+    t, p = np.meshgrid(th, ph, indexing="ij")
+    d = np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], -1)
+    sun = np.array([0.6, -0.6, 0.55])
+    sun /= np.linalg.norm(sun)
+    sky = np.where(d[..., 2] > 0, 0.15 + 0.1 * d[..., 2], 0.03)
+    return EnvironmentMap(sky + 1.5 * np.clip(d @ sun, 0, None) ** 3, max_size=64)
+
+
+def pyramid_mesh(base_mm: float = EDGE_MM, height_mm: float = 0.7 * EDGE_MM) -> trimesh.Trimesh:
+    a, z0 = base_mm / 2, -height_mm / 3        # centroid at the origin
+    v = np.array([[-a, -a, z0], [a, -a, z0], [a, a, z0], [-a, a, z0], [0, 0, z0 + height_mm]])
+    f = np.array([[0, 2, 1], [0, 3, 2], [0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]])
+    m = trimesh.Trimesh(v, f, process=False)
+    if m.volume < 0:
+        m.invert()
+    return m
+
+
+@functools.lru_cache(maxsize=None)
+def setup(shape_kind: str, light_kind: str):
+    """Camera, MC shape, lights, patches and the pixels a mesh face covers."""
+    from simulators.mc import Box, Mesh
+
+    dist = float(np.linalg.norm(CAMERA_MM))
+    cam = PinholeCamera.looking_at(width_px=SIZE, height_px=SIZE, fx_px=SIZE * dist / (1.9 * EDGE_MM),
+                                   position_mm=CAMERA_MM, target_mm=(0.0, 0.0, 0.0))
+    if shape_kind == "cube":
+        mesh, h = trimesh.creation.box(extents=(EDGE_MM,) * 3), EDGE_MM / 2
+        shape = Box((-h, -h, -h), (h, h, h))
+    else:
+        mesh = pyramid_mesh()
+        assert mesh.is_watertight and mesh.is_convex   # EnvironmentMap irradiance has no shadowing
+        shape = Mesh(mesh)
+    light = sky_map() if light_kind == "env" else PointLights(np.array([LIGHT_MM]), np.array([[1.0e6]]))
+    v, f = trimesh.remesh.subdivide_to_size(mesh.vertices, mesh.faces, max_edge=PATCH_MM)
+    sub = trimesh.Trimesh(v, f, process=False)
+    return cam, shape, light, patches_from_mesh(sub, cam), pixel_faces(sub, cam) >= 0
+
+
+@functools.lru_cache(maxsize=None)
+def case(name: str):
+    """(setup, truth, eta, observations, their standard error, frame seconds) of a case's MC frame."""
+    from simulators.mc import Medium, render
+
+    shape_kind, light_kind, mat, eta, spp = CASES[name][:5]
+    cam, shape, light, pat, valid_px = su = setup(shape_kind, light_kind)
+    truth = MATERIALS[mat]
+    img = render(shape, [Medium.from_reduced(*truth, eta=eta)], cam, light, spp=spp, seed=SEED)
+    obs, sig = sample_at_points(img.radiance, img.stderr ** 2, (valid_px & img.mask)[..., None], cam,
+                                pat.centers_mm)
+    obs[~pat.visible] = np.nan
+    sig[~pat.visible] = np.nan
+    assert img.truncated_fraction == 0
+    return su, truth, eta, obs, sig, img.seconds
+
+
+def errors(r, truth):
+    s, a = float(r.sigma_s_prime_per_mm[0]), float(r.sigma_a_per_mm[0])
+    lo, hi = (float(x) for x in r.sigma_a_ci_per_mm[0])
+    return s / truth[0] - 1, a / truth[1] - 1, (lo, hi), bool(r.sigma_a_identifiable_per_channel[0])
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_plain_mc_table_bias(name):
+    (cam, shape, light, pat, _), truth, eta, obs, sig, frame_s = case(name)
+    assert np.isfinite(obs[:, 0]).sum() > 300
+    t0 = time.perf_counter()
+    r = estimate_single_image(obs, pat, light, eta, method="direct", model="mc-table", noise_sigma=sig)
+    assert r, r.message
+    es, ea, ci, ident = errors(r, truth)
+    print(f"{name} seed {SEED}: plain mc-table sigma_s' {es:+.1%}, sigma_a {ea:+.1%} (CI {ci[0]:.3g}-{ci[1]:.3g}, "
+          f"identifiable {ident}); frame {frame_s:.1f} s, fit {time.perf_counter() - t0:.1f} s")
+    (s_lo, s_hi), (a_lo, a_hi) = CASES[name][6:8]
+    assert s_lo <= es <= s_hi
+    assert a_lo <= ea <= a_hi
+
+
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.xfail(strict=True, reason=KNOWN_FAILURES[n]))
+                                  if n in KNOWN_FAILURES else n for n in CASES])
+def test_reference_corrected_acceptance(name):
+    (cam, shape, light, pat, valid_px), truth, eta, obs, sig, _ = case(name)
+    ref = MonteCarloReference(shape, cam, light, pat, spp=CASES[name][5], valid_px=valid_px)
+    t0 = time.perf_counter()
+    r = estimate_with_reference(obs, pat, light, eta, ref, noise_sigma=sig, base_model="mc-table",
+                                max_iterations=4, seed=REFERENCE_SEED)
+    assert r, r.message
+    es, ea, (lo, hi), ident = errors(r, truth)
+    print(f"{name} seed {SEED}: mc-table+reference sigma_s' {es:+.1%}, sigma_a {ea:+.1%} (CI {lo:.3g}-{hi:.3g}, "
+          f"identifiable {ident}), {len(ref.renders)} renders, {time.perf_counter() - t0:.1f} s")
+    assert r.model == "mc-table+reference" and {x["seed"] for x in ref.renders} == {REFERENCE_SEED}
+    assert abs(es) <= TOL_SSP
+    assert abs(ea) <= TOL_SA or (not ident and lo <= truth[1] <= hi)
+
+
+def test_fast_fit_recovers_its_own_prediction():
+    """The former pyramid-env-skin1 failure: noise-free observations equal to the mc-table model at the truth
+    (1 % noise_sigma) must be fitted back to the truth (before the grid's local minima became starts: sigma_s'
+    -66 %, sigma_a 3e-6 /mm)."""
+    (cam, shape, light, pat, _), truth, eta, obs, _, _ = case("pyramid-env-skin1")
+    o = np.full_like(obs, np.nan)
+    o[pat.visible_index] = predict_radiance(pat, light, eta, *truth, model="mc-table")
+    o[~np.isfinite(obs)] = np.nan
+    r = estimate_single_image(o, pat, light, eta, method="direct", model="mc-table", noise_sigma=0.01 * o)
+    assert r, r.message
+    es, ea, _, _ = errors(r, truth)
+    print(f"mc-table fit of its own prediction: sigma_s' {es:+.1%}, sigma_a {ea:+.1%}")
+    assert abs(es) <= 0.01 and abs(ea) <= 0.01
