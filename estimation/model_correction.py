@@ -177,7 +177,8 @@ def estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, ligh
 
     ``observed_radiance``, ``noise_sigma``, ``patches``, ``lights``, ``eta`` and ``fit_kwargs`` are those of
     :func:`estimation.single_image.estimate_single_image` (``method`` defaults to "direct"). ``reference`` is
-    called at most ``max_iterations`` times with seeds ``seed + i``. Returns the last fit, with ``model``
+    called at most ``max_iterations`` times, always with ``seed`` (common random numbers; the module docstring);
+    each refit also starts from the point just rendered (``start_per_mm``). Returns the last fit, with ``model``
     set to ``"<base_model>+reference"`` and ``extra["reference"]`` holding every step (parameters, seconds,
     the correction's median / 5th / 95th percentile), ``extra["converged"]`` and ``extra["model_bias"]``, the base
     model's radiance over the reference's at the final parameters. A failed base fit is returned as it is
