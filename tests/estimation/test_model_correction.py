@@ -101,7 +101,9 @@ def test_reference_corrected_fit_recovers_truth(observed):
     # each within the pooled 1 % noise of the reference
     bias = r.extra["model_bias"]
     print({k: bias[k] for k in ("radiance_ratio_p05", "radiance_ratio_median", "radiance_ratio_p95")})
-    assert 1.08 < bias["radiance_ratio_p95"][0] < 1.14 and 0.99 < bias["radiance_ratio_p05"][0] < 1.04
+    p95, p05 = bias["radiance_ratio_p95"][0], bias["radiance_ratio_p05"][0]
+    assert 1.08 < p95 < 1.14, p95  # edge patches: 1/(1 - DEPTH) = 1.11, not 1 (a bias report of 1 fails here)
+    assert 0.99 < p05 < 1.04, p05  # face centres: ~1.02
     assert bias["table_level"]["model"] == "mc-table"
 
 
