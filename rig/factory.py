@@ -25,8 +25,11 @@ from drivers.trigger.hid_box import HidTrigger, open_hid_trigger
 from drivers.trigger.serial_release import SerialRelease, open_serial_release
 
 from .config import CameraConfig, RigConfig, TriggerConfig
-from .geometry import RigGeometry, rig_geometry  # noqa: F401  (re-exported)
+from .geometry import RigGeometry, rig_geometry
 from .runner import Devices
+
+__all__ = ["SimulatedRig", "SimulatedReleaseCable", "open_camera", "open_devices", "open_trigger",
+           "rig_geometry", "start_simulators"]  # rig_geometry: re-exported for hil/ and the CLI
 
 
 class _Stopper:
