@@ -9,20 +9,29 @@ the correction kappa = reference / fast model.
 
 The renders are not free: one per iteration, ``spp`` paths per pixel of the whole frame. :attr:`renders`
 keeps the statistics of each (seconds, paths per second) for the reports.
+
+:class:`GradientsMonteCarloReference` does the same for the gradient (diffusion) estimate on a known sphere
+(:func:`estimation.gradient_correction.estimate_sphere_with_reference`): it renders the whole gradient capture by
+Monte Carlo (:func:`simulators.scene.render_gradient_capture` with ``render_mode="mc"``) and reduces it to the
+sphere observables with the same map computation, region and summary as the observations
+(:meth:`GradientsMonteCarloReference.observables`).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 from numpy.typing import NDArray
 
+from estimation.diffusion import SphereEstimate, estimate_sphere
+from estimation.gradient_correction import SphereObservables
+from estimation.gradients import GradientMaps
 from estimation.single_image import Patches
 
 from .estimate import sample_at_points
 
-__all__ = ["MonteCarloReference"]
+__all__ = ["MonteCarloReference", "GradientsMonteCarloReference"]
 
 
 @dataclass
@@ -71,3 +80,92 @@ class MonteCarloReference:
                              "paths_per_s": paths / max(img.seconds, 1e-9),
                              "sigma_s_prime_per_mm": ssp.tolist(), "sigma_a_per_mm": sa.tolist()})
         return obs, sig
+
+
+@dataclass
+class GradientsMonteCarloReference:
+    """``reference(sigma_s', sigma_a, eta, seed) -> SphereObservables`` of a gradient capture of a known sphere.
+
+    Renders the capture by Monte Carlo — a :class:`simulators.scene.SphereObject` of ``radius_mm`` at
+    ``center_mm`` seen by ``camera`` under ``led_positions_mm`` / ``led_intensity`` driven by ``patterns``
+    (``polarizations``, ``exposure_s``, ``sensor`` as in :func:`simulators.scene.render_gradient_capture`, sensor
+    noise off: expected values), ``spp`` paths per pixel, every pattern with the given seed — and reduces it
+    with :meth:`observables`: ``maps_fn(capture) -> GradientMaps`` (the *same* ``compute_maps`` call, LUT and
+    albedo scale as the observations), :func:`estimation.diffusion.estimate_sphere` with the capture's true
+    normals and ``erode_px``, and the summary's median albedo / shortening with their intervals. Use
+    :meth:`observables` on the observed capture too, so that both go through identical code.
+    ``mc``: further :class:`simulators.mc_capture.MCSettings` (its ``spp`` and ``seed`` are replaced).
+    :attr:`renders` keeps each render's seconds and parameters.
+    """
+
+    camera: Any
+    led_positions_mm: Any
+    led_intensity: Any
+    patterns: dict[str, Any]
+    maps_fn: Callable[[Any], GradientMaps]
+    radius_mm: float
+    center_mm: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    spp: int = 64
+    polarizations: tuple[str, ...] = ("cross",)
+    exposure_s: float = 1.0
+    sensor: Any = None
+    erode_px: int = 2
+    tessellation: int = 3
+    mc: Any = None
+    renders: list[dict[str, Any]] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        if self.spp < 2:
+            raise ValueError("spp must be >= 2 (the Monte Carlo standard error needs two paths per pixel)")
+        if not self.radius_mm > 0:
+            raise ValueError(f"radius_mm must be > 0; got {self.radius_mm!r}")
+        if not self.patterns:
+            raise ValueError("patterns must name at least one LED pattern")
+        if not callable(self.maps_fn):
+            raise ValueError("maps_fn must be a callable capture -> GradientMaps")
+        if self.erode_px < 0:
+            raise ValueError("erode_px must be >= 0")
+
+    def estimate(self, capture: Any) -> SphereEstimate:
+        """The sphere estimate of a capture (observed or rendered): maps_fn, then estimate_sphere."""
+        maps = self.maps_fn(capture)
+        return estimate_sphere(maps, radius_mm=float(self.radius_mm), true_normals=capture.normals,
+                               erode_px=int(self.erode_px))
+
+    def observables(self, capture: Any) -> SphereObservables:
+        """The region observables of a capture, computed exactly as for the reference renders."""
+        return SphereObservables.from_summary(self.estimate(capture).summary)
+
+    def render(self, sigma_s_prime_per_mm: Any, sigma_a_per_mm: Any, eta: float, seed: int) -> Any:
+        """The Monte Carlo gradient capture (:class:`simulators.scene.GradientCapture`) at these parameters."""
+        from dataclasses import replace
+
+        from simulators.mc_capture import MCSettings
+        from simulators.scene import SphereObject, render_gradient_capture
+
+        ssp = np.broadcast_to(np.asarray(sigma_s_prime_per_mm, dtype=np.float64), (3,))
+        sa = np.broadcast_to(np.asarray(sigma_a_per_mm, dtype=np.float64), (3,))
+        if not (np.all(np.isfinite(ssp)) and np.all(ssp > 0)):
+            raise ValueError(f"sigma_s_prime_per_mm must be finite and > 0; got {ssp.tolist()}")
+        if not (np.all(np.isfinite(sa)) and np.all(sa >= 0)):
+            raise ValueError(f"sigma_a_per_mm must be finite and >= 0; got {sa.tolist()}")
+        settings = MCSettings(spp=int(self.spp), seed=int(seed)) if self.mc is None else replace(
+            self.mc, spp=int(self.spp), seed=int(seed))
+        obj = SphereObject(tuple(float(c) for c in self.center_mm), float(self.radius_mm),
+                           (float(ssp[0]), float(ssp[1]), float(ssp[2])), (float(sa[0]), float(sa[1]), float(sa[2])),
+                           float(eta), tessellation=int(self.tessellation))
+        return render_gradient_capture(obj, self.camera, self.led_positions_mm, self.led_intensity, self.patterns,
+                                       polarizations=self.polarizations, exposure_s=self.exposure_s,
+                                       sensor=self.sensor, noise=False, render_mode="mc", mc=settings)
+
+    def __call__(self, sigma_s_prime_per_mm: Any, sigma_a_per_mm: Any, eta: float, seed: int) -> SphereObservables:
+        import time
+
+        t0 = time.perf_counter()
+        cap = self.render(sigma_s_prime_per_mm, sigma_a_per_mm, eta, seed)
+        t1 = time.perf_counter()
+        obs = self.observables(cap)
+        self.renders.append({"seed": int(seed), "render_seconds": t1 - t0, "maps_seconds": time.perf_counter() - t1,
+                             "sigma_s_prime_per_mm": np.atleast_1d(sigma_s_prime_per_mm).tolist(),
+                             "sigma_a_per_mm": np.atleast_1d(sigma_a_per_mm).tolist(), "spp": int(self.spp)})
+        return obs

@@ -33,9 +33,11 @@ from drivers.contracts import Polarization
 from estimation.camera import PinholeCamera
 from estimation.diffusion import estimate_sphere, fit_relief
 from estimation.dipole import total_diffuse_reflectance
+from estimation.gradient_correction import estimate_sphere_with_reference
 from estimation.gradients import LedRig, albedo_scale_from_radiometry, build_response_lut, compute_maps
 from estimation.mc_table import default_table
 from rig.geometry import led_layout
+from rig.mc_reference import GradientsMonteCarloReference
 from simulators.camera import SensorModel
 from simulators.mc_capture import MCSettings, led_environment, relief_mesh
 from simulators.scene import BumpySlabObject, SphereObject, render_gradient_capture, render_object
@@ -203,6 +205,70 @@ def test_sphere_gradients_on_mc_frames(name: str, rig) -> None:
     assert np.all(np.abs(alb / r_tab - np.array(ALBEDO_BIAS[name])) <= np.array(ALBEDO_TOL[name])), alb / r_tab
     assert max(blocks) <= NORMAL_MAX_DEG[name], blocks
     assert np.all(np.isfinite(D))
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# spheres under the gradient patterns, corrected by a Monte Carlo reference of the known sphere
+# ---------------------------------------------------------------------------------------------------------------
+REF_SEED_OFFSET = 100   # the reference's realisation is independent of the observation's (a real capture is not
+#                         a Monte Carlo render with the reference's seed)
+REF_ITERATIONS = 4
+# allowed |corrected / true - 1| per channel (R, G, B), from the measured spread over seeds 0-2 (module docstring of
+# the test below); the blue channels are dominated by Monte Carlo noise of the blur at these path counts
+D_TOL = {"marble": (0.10, 0.10, 0.30), "skin1": (0.06, 0.10, 0.35)}
+SSP_TOL = {"marble": (0.10, 0.10, 0.35), "skin1": (0.05, 0.10, 0.45)}
+SA_TOL = {"marble": (0.25, 0.15, 0.35), "skin1": (0.05, 0.10, 0.70)}
+
+
+@pytest.mark.parametrize("name", sorted(MATERIALS))
+def test_sphere_gradients_reference_corrected_on_mc_frames(name: str, rig) -> None:
+    """The observation of ``test_sphere_gradients_on_mc_frames`` (seed SSSRIG_MC_SEED), corrected by
+    ``estimate_sphere_with_reference`` with a ``GradientsMonteCarloReference`` of the same capture (same camera,
+    LEDs, patterns, spp, maps and region; seed + 100, common random numbers over the iterations; at most 4 renders).
+
+    Measured (seeds 0-2, corrected / true - 1, R / G / B): see docs/model-error.md, "Gradients on spheres". Red and
+    green settle within a few % in D, sigma_s' and sigma_a (skin1) — from +20..+100 % uncorrected; marble's censored
+    red/green come back into range. The blue channels' blur is 8-16 x the model's (kappa_blur) and its Monte Carlo
+    error 5-10 %, so their D moves by ~+-20 % from seed to seed: asserted with a wide tolerance, and their reported
+    interval is wide.
+    """
+    ssp, sa, _, _ = truth(name)
+    pos, inten, patterns, leds, lut = rig
+    obj = SphereObject((0.0, 0.0, 0.0), RADIUS_MM, tuple(ssp), tuple(sa), ETA, tessellation=3)
+    t0 = time.perf_counter()
+    cap = render_gradient_capture(obj, sphere_camera(32), pos, inten, patterns, polarizations=("cross",),
+                                  exposure_s=0.02, sensor=SENSOR, noise=False, render_mode="mc",
+                                  mc=MCSettings(spp=SPP[name], seed=SEED))
+    ref = GradientsMonteCarloReference(sphere_camera(32), pos, inten, patterns, lambda c: maps_of(c, rig), RADIUS_MM,
+                                       spp=SPP[name], exposure_s=0.02, sensor=SENSOR)
+    est = ref.estimate(cap)
+    t1 = time.perf_counter()
+    res = estimate_sphere_with_reference(est.summary, ref, RADIUS_MM, ETA, seed=SEED + REF_SEED_OFFSET,
+                                         max_iterations=REF_ITERATIONS, rel_tol=0.02)
+    seconds = time.perf_counter() - t1
+    D_true = 1.0 / (3.0 * (ssp + sa))
+    unc = res.uncorrected
+    # the uncorrected start is exactly estimate_sphere's summary
+    np.testing.assert_allclose(unc["D_mm"], est.summary.value("D_mm"), rtol=1e-6)
+    err = {"D": (unc["D_mm"] / D_true - 1, res.D_mm / D_true - 1),
+           "sigma_s'": (unc["sigma_s_prime_per_mm"] / ssp - 1, res.sigma_s_prime_per_mm / ssp - 1),
+           "sigma_a": (unc["sigma_a_per_mm"] / sa - 1, res.sigma_a_per_mm / sa - 1)}
+    print(f"\n{name} sphere, reference-corrected (observation {t1 - t0:.1f} s, {res.iterations} renders "
+          f"{seconds:.1f} s; {res.message}); kappa_albedo {np.round(res.kappa_albedo, 3)}, kappa_blur "
+          f"{np.round(res.kappa_blur, 2)}")
+    for k, (u, c) in err.items():
+        print(f"  {k:8s} uncorrected {np.round(u, 3)} -> corrected {np.round(c, 3)}")
+    print(f"  D interval / D_true - 1: {np.round(res.intervals['D_mm'] / D_true[:, None] - 1, 3).tolist()}")
+    assert len(ref.renders) == res.iterations <= REF_ITERATIONS
+    assert {r["seed"] for r in ref.renders} == {SEED + REF_SEED_OFFSET}
+    assert np.all(np.isfinite(res.D_mm)) and not res.censored.any()
+    # the correction removes the curvature gain: kappa_albedo is the measured albedo bias over R_d's model value
+    assert np.all(res.kappa_albedo > 1.04)
+    assert np.all(np.abs(err["D"][1]) <= np.array(D_TOL[name])), err["D"][1]
+    assert np.all(np.abs(err["sigma_s'"][1]) <= np.array(SSP_TOL[name])), err["sigma_s'"][1]
+    assert np.all(np.abs(err["sigma_a"][1]) <= np.array(SA_TOL[name])), err["sigma_a"][1]
+    # and is an improvement where the plain inversion was worst (red/green)
+    assert np.all(np.abs(err["D"][1][:2]) < np.abs(err["D"][0][:2]) + 0.02)
 
 
 # ---------------------------------------------------------------------------------------------------------------

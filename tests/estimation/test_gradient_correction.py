@@ -1,0 +1,154 @@
+"""estimation.gradient_correction: reference-corrected sphere estimates, with synthetic references (no Monte Carlo).
+
+The synthetic reference distorts the fast model's observables the way the Monte Carlo frames of a 10 mm sphere do
+(tests/simulators/test_mc_frames_gradients.py): the albedo is multiplied by a curvature gain that grows with the
+diffusion length (1.16-1.45 measured), and the blur 1 - S is scaled *and* offset (the measured b_ref / b_fast is
+1.5-16 and its sensitivity to l' differs from the model's). Observations made by that reference at the truth must
+give back the truth.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from estimation.diffusion import invert_sphere_scalar
+from estimation.gradient_correction import (SphereObservables, estimate_sphere_with_reference,
+                                            sphere_model_observables)
+
+ETA = 1.3
+RADIUS_MM = 10.0
+MARBLE = (np.array([2.19, 2.62, 3.00]), np.array([0.0021, 0.0041, 0.0071]))
+SKIN1 = (np.array([0.74, 0.88, 1.01]), np.array([0.032, 0.17, 0.48]))
+
+
+class Distorted:
+    """A reference whose observables are the fast model's, distorted smoothly in the parameters."""
+
+    def __init__(self, gain: float = 1.17, gain_per_ld: float = 0.05, blur_scale: float = 1.4,
+                 blur_offset: float = 0.02, rel_stderr: float = 0.0) -> None:
+        self.gain, self.gain_per_ld, self.blur_scale, self.blur_offset = gain, gain_per_ld, blur_scale, blur_offset
+        self.rel_stderr = rel_stderr
+        self.calls: list[tuple[list[float], list[float], int]] = []
+
+    def observables(self, ssp, sa) -> SphereObservables:
+        ssp, sa = np.asarray(ssp, float), np.asarray(sa, float)
+        fast = sphere_model_observables(RADIUS_MM, ssp, sa, ETA)
+        l_d = 1.0 / np.sqrt(3.0 * sa * (ssp + sa))
+        A = fast.albedo * self.gain * (1.0 + self.gain_per_ld * np.minimum(l_d, 20.0))
+        b = (1.0 - fast.shortening) * self.blur_scale + self.blur_offset
+        e = self.rel_stderr * 1.96
+        return SphereObservables(A, 1.0 - b, np.stack([A * (1 - e), A * (1 + e)], 1),
+                                 np.stack([1.0 - b * (1 + e), 1.0 - b * (1 - e)], 1))
+
+    def __call__(self, ssp, sa, eta, seed):
+        assert eta == ETA
+        self.calls.append((list(ssp), list(sa), seed))
+        return self.observables(ssp, sa)
+
+
+@pytest.mark.parametrize("name,material", [("marble", MARBLE), ("skin1", SKIN1)])
+def test_truth_is_the_fixed_point_of_a_distorted_reference(name, material) -> None:
+    """Observed = reference at the truth: the plain inversion is far off (marble red/green censored: the gain
+    pushes the albedo above a non-absorbing sphere's), the corrected estimate is the truth to 0.5 % in sigma_s'
+    and D and 2 % in sigma_a, within <= 8 renders, always with the same seed."""
+    ssp, sa = material
+    ref = Distorted()
+    obs = ref.observables(ssp, sa)
+    res = estimate_sphere_with_reference(obs, ref, RADIUS_MM, ETA, seed=7, rel_tol=1e-3, max_iterations=10)
+    D_true = 1.0 / (3.0 * (ssp + sa))
+    unc = res.uncorrected
+    print(f"\n{name}: D/D_true uncorrected {np.round(unc['D_mm'] / D_true - 1, 3)}, corrected "
+          f"{np.round(res.D_mm / D_true - 1, 5)}, {res.iterations} renders; {res.message}")
+    assert np.max(np.abs(unc["D_mm"] / D_true - 1)) > 0.05          # the distortion matters
+    if name == "marble":
+        assert unc["censored"][0] and unc["censored"][1]
+    assert res.converged and res.iterations <= 8
+    assert len(ref.calls) == res.iterations and {c[2] for c in ref.calls} == {7}
+    np.testing.assert_allclose(res.sigma_s_prime_per_mm, ssp, rtol=5e-3)
+    np.testing.assert_allclose(res.D_mm, D_true, rtol=5e-3)
+    np.testing.assert_allclose(res.sigma_a_per_mm, sa, rtol=2e-2)
+    assert not res.censored.any()
+    # the scene's model bias is reported: kappa at the last render point ~ the distortion at the truth
+    fast = sphere_model_observables(RADIUS_MM, ssp, sa, ETA)
+    np.testing.assert_allclose(res.kappa_albedo, obs.albedo / fast.albedo, rtol=1e-2)
+    np.testing.assert_allclose(res.kappa_blur, (1 - obs.shortening) / (1 - fast.shortening), rtol=1e-2)
+
+
+def test_an_exact_reference_gives_the_plain_inversion_after_one_render() -> None:
+    ssp, sa = SKIN1
+    calls = []
+
+    def exact(s, a, eta, seed):
+        calls.append(seed)
+        return sphere_model_observables(RADIUS_MM, s, a, eta)
+
+    obs = sphere_model_observables(RADIUS_MM, ssp * 1.1, sa * 0.8, ETA)
+    res = estimate_sphere_with_reference(obs, exact, RADIUS_MM, ETA)
+    assert res.converged and res.iterations == 1 and len(calls) == 1
+    np.testing.assert_allclose(res.kappa_albedo, 1.0, atol=1e-12)
+    np.testing.assert_allclose(res.kappa_blur, 1.0, atol=1e-9)
+    np.testing.assert_allclose(res.sigma_s_prime_per_mm, res.uncorrected["sigma_s_prime_per_mm"], rtol=1e-9)
+    np.testing.assert_allclose(res.sigma_s_prime_per_mm, ssp * 1.1, rtol=1e-6)
+    np.testing.assert_allclose(res.sigma_a_per_mm, sa * 0.8, rtol=1e-5)
+    al, lp, _ = invert_sphere_scalar(float(obs.albedo[0]), float(obs.shortening[0]), RADIUS_MM, ETA)
+    assert res.D_mm[0] == pytest.approx(lp / 3.0, rel=1e-9)
+
+
+def test_intervals_cover_the_truth_and_widen_with_the_reference_error() -> None:
+    """Observed with 1 % intervals; a reference with 0 % and with 2 % Monte Carlo error: the corrected interval holds
+    the truth, and the reference's error widens it (quadrature: the D interval's half-width grows by
+    about sqrt(1 + 4) / 1 in the limit of the linearization)."""
+    ssp, sa = SKIN1
+    widths = []
+    for rel_se in (0.0, 0.02):
+        ref = Distorted(rel_stderr=rel_se)
+        o = Distorted(rel_stderr=0.01).observables(ssp, sa)
+        res = estimate_sphere_with_reference(o, ref, RADIUS_MM, ETA, rel_tol=1e-3)
+        D_true = 1.0 / (3.0 * (ssp + sa))
+        iv = res.intervals["D_mm"]
+        assert np.all((iv[:, 0] <= D_true) & (D_true <= iv[:, 1])), (iv, D_true)
+        for k, truth in (("sigma_s_prime_per_mm", ssp), ("sigma_a_per_mm", sa)):
+            assert np.all((res.intervals[k][:, 0] <= truth) & (truth <= res.intervals[k][:, 1])), k
+        np.testing.assert_allclose(res.kappa_albedo_rel_stderr, rel_se, rtol=1e-3, atol=1e-12)  # log vs linear
+        widths.append(np.log(iv[:, 1] / iv[:, 0]))
+    ratio = widths[1] / widths[0]
+    assert np.all(ratio > 1.8) and np.all(ratio < 2.5), ratio
+
+
+def test_stops_after_max_iterations_and_says_so() -> None:
+    ssp, sa = SKIN1
+    ref = Distorted()
+    res = estimate_sphere_with_reference(ref.observables(ssp, sa), ref, RADIUS_MM, ETA, max_iterations=1,
+                                         rel_tol=1e-6)
+    assert not res.converged and res.iterations == 1 and "stopped after 1" in res.message
+    assert len(res.steps) == 1 and res.steps[0].change > 0.05
+
+
+def test_bad_input_names_the_argument() -> None:
+    ssp, sa = SKIN1
+    ref = Distorted()
+    obs = ref.observables(ssp, sa)
+    with pytest.raises(ValueError, match="radius_mm"):
+        estimate_sphere_with_reference(obs, ref, 0.0, ETA)
+    with pytest.raises(ValueError, match="eta"):
+        estimate_sphere_with_reference(obs, ref, RADIUS_MM, float("nan"))
+    with pytest.raises(ValueError, match="max_iterations"):
+        estimate_sphere_with_reference(obs, ref, RADIUS_MM, ETA, max_iterations=0)
+    with pytest.raises(ValueError, match="observed"):
+        estimate_sphere_with_reference({"albedo": 1}, ref, RADIUS_MM, ETA)
+    with pytest.raises(ValueError, match="observed"):
+        estimate_sphere_with_reference(SphereObservables([np.nan] * 3, [0.9] * 3), ref, RADIUS_MM, ETA)
+    with pytest.raises(ValueError, match="shortening"):
+        SphereObservables([0.5, 0.5], [0.9])
+
+    def nan_ref(s, a, eta, seed):
+        return SphereObservables(np.full(3, np.nan), np.full(3, 0.9))
+
+    with pytest.raises(ValueError, match="reference"):
+        estimate_sphere_with_reference(obs, nan_ref, RADIUS_MM, ETA)
+
+    def short_ref(s, a, eta, seed):
+        return SphereObservables(np.ones(2), np.full(2, 0.9))
+
+    with pytest.raises(ValueError, match="reference result has 2 channels"):
+        estimate_sphere_with_reference(obs, short_ref, RADIUS_MM, ETA)
