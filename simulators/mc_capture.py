@@ -5,8 +5,8 @@ The simulated camera renders a capture either **fast** (the Jensen dipole over s
 This module converts what a scene holds into what the Monte Carlo renderer needs:
 
 - geometry (:func:`mc_shape`): :class:`~simulators.scene.SphereObject` -> analytic ``Sphere``;
-  :class:`~simulators.scene.MeshObject` -> ``Mesh`` (its own BVH; flat faces), except an axis-aligned box mesh,
-  which becomes the analytic ``Box`` (exact refracted point-light connections); :class:`~simulators.scene.
+  :class:`~simulators.scene.MeshObject` -> ``Mesh`` (its own BVH; flat faces; refracted point-light connections
+  for convex meshes), except an axis-aligned box mesh, which becomes the analytic ``Box``; :class:`~simulators.scene.
   BumpySlabObject` -> a closed ``Mesh``: the relief h(u, v) sampled every ``MCSettings.relief_step_mm`` on the
   top, flat sides and bottom ``slab_thickness_mm`` below (default half the extent: deep enough to act as a
   half-space for every material of science.md sec. 2 except the thinnest-absorbing channels);
@@ -17,7 +17,7 @@ This module converts what a scene holds into what the Monte Carlo renderer needs
   - ``"points"``: isotropic point lights at the LED positions, exactly what the fast renderer uses. The renderer
     connects every collision to one LED (next-event estimation through the refracting boundary) -- exact, but
     noisy (a 10 mm marble sphere under all 362 LEDs: ~35 % per-pixel standard error at 8 samples per pixel)
-    and unavailable for meshes with eta != 1;
+    and unavailable for non-convex meshes with eta != 1 (convex meshes, e.g. pyramids, are supported);
   - ``"distant"``: the LEDs as a distant lat-long radiance map in which every map pixel takes the radiance of its
     nearest LED, I_l / d_l^2 spread over that LED's (Voronoi) cell (pixels farther than 0.75 x the largest
     nearest-neighbour LED spacing from any LED stay dark, e.g. below the lowest ring). It has the LEDs'
@@ -26,8 +26,8 @@ This module converts what a scene holds into what the Monte Carlo renderer needs
     with piecewise-constant cells instead of points. Walks then read the map in their exit direction: low
     variance (the same sphere: ~2 % at 8 spp), any shape;
   - ``"auto"`` (default): "distant" for gradient captures (many LEDs lit), "points" when at most
-    ``MCSettings.max_point_lights`` LEDs are lit and the renderer supports them (analytic shape or eta = 1),
-    else "distant".
+    ``MCSettings.max_point_lights`` LEDs are lit and the renderer supports them (analytic shape, convex mesh or
+    eta = 1), else "distant".
 
 Every frame carries the Monte Carlo standard error of its diffuse radiance. Frames of one capture share the
 seed, i.e. the same random walks (common random numbers): under distant light a walk does not depend on the
@@ -211,9 +211,12 @@ def led_environment(led_positions_mm: npt.ArrayLike, emission: npt.ArrayLike, *,
 
 
 def _point_lights_supported(obj: Any, shape: Any) -> bool:
+    """Point lights work for every shape at eta = 1 and, at eta != 1, for analytic shapes and convex meshes
+    (refracted connections face by face, :mod:`simulators.mc.nee`)."""
     from simulators.mc import Mesh
 
-    return not isinstance(shape, Mesh) or abs(float(obj.eta) - 1.0) < 1e-12
+    return (not isinstance(shape, Mesh) or abs(float(obj.eta) - 1.0) < 1e-12
+            or bool(shape.geometry().convex))
 
 
 def led_lights(obj: Any, shape: Any, led_positions_mm: npt.ArrayLike, emission: npt.ArrayLike,
@@ -230,8 +233,8 @@ def led_lights(obj: Any, shape: Any, led_positions_mm: npt.ArrayLike, emission: 
         mode = "points" if few and _point_lights_supported(obj, shape) else "distant"
     if mode == "points":
         if not _point_lights_supported(obj, shape):
-            raise ValueError("point LEDs through a refractive mesh boundary are not supported by the Monte Carlo "
-                             'renderer: use leds="distant" or eta = 1')
+            raise ValueError("point LEDs through a refractive (eta != 1) non-convex mesh boundary are not "
+                             'supported by the Monte Carlo renderer: use leds="distant", a convex mesh or eta = 1')
         return PointLights(pos[lit], em[lit]), mode
     center = getattr(obj, "center_mm", None)
     if center is None:

@@ -15,8 +15,12 @@ straight from L through the boundary and cos = (propagation of that light) . (-d
       J = (h / cos_1 + z / (eta cos_2)) cos_2 (h / cos_1^2 + z cos_1 / (eta cos_2^3)),
   h the light's height over the face, z the vertex depth (J = |L - x|^2 at eta = 1). Spheres: all stationary
   points on the great circle through L, x and the centre (bracketed by a scan, refined by bisection), J by
-  central finite differences of the refracted ray tube. Triangle meshes with eta != 1 are not supported
-  (every flat face would be a candidate); use eta = 1, environment/pattern lights or the profile tools.
+  central finite differences of the refracted ray tube. Convex triangle meshes (a pyramid, a box given as a
+  mesh, any convex polyhedron): coplanar triangles are merged into flat convex faces; one closed-form candidate
+  per face that faces the light, kept iff its refraction point lies in the face, exactly like the box's faces;
+  convexity makes both segments unoccluded (:func:`mesh_connections`). Non-convex meshes with eta != 1 are not
+  supported (a face may be shadowed, and light may refract in through one face and out and in again):
+  :func:`simulators.mc.render` raises ValueError; use eta = 1, environment/pattern lights or the profile tools.
 
 Not captured (documented bias of the point-light estimator with eta != 1): light that reaches its first scattering
 vertex only after a specular reflection inside the medium, bounded by F_r exp(-sigma_t * chord); zero for the
@@ -29,10 +33,10 @@ import math
 from numba import njit
 
 from .optics import fresnel_r, hg_phase, orthonormal_basis, refract
-from .shapes import BOX, HALF_SPACE, SLAB, SPHERE, nearest_hit, surface_distance
+from .shapes import BOX, FACE_TABLE_START, HALF_SPACE, MESH, SLAB, SPHERE, nearest_hit, surface_distance
 
 __all__ = ["point_light_nee", "light_contribution", "min_inside_length", "plane_connection", "sphere_connections",
-           "sphere_min_inside_length"]
+           "sphere_min_inside_length", "mesh_connections", "mesh_min_inside_length"]
 
 _FD_STEP = 1e-6
 
@@ -282,6 +286,12 @@ def _plane_term(p0x, p0y, p0z, nx, ny, nz, x, y, z, lx, ly, lz, eta, sigma_t, g,
         b = (bx, by, bz)
         if b[ax0] < lo0 - tol or b[ax0] > hi0 + tol or b[ax1] < lo1 - tol or b[ax1] > hi1 + tol:
             return 0.0
+    return _connection_term(x, y, z, bx, by, bz, J, c1, l_in, nx, ny, nz, eta, sigma_t, g, dcx, dcy, dcz)
+
+
+@njit(cache=True, error_model="numpy")
+def _connection_term(x, y, z, bx, by, bz, J, c1, l_in, nx, ny, nz, eta, sigma_t, g, dcx, dcy, dcz):
+    """p(cos) F_t(eta, cos_1) exp(-sigma_t l_in) / J of one refracted connection x <- b <- L (outward normal n)."""
     ux, uy, uz = x - bx, y - by, z - bz
     if l_in > 0.0:
         ux, uy, uz = ux / l_in, uy / l_in, uz / l_in
@@ -289,6 +299,80 @@ def _plane_term(p0x, p0y, p0z, nx, ny, nz, x, y, z, lx, ly, lz, eta, sigma_t, g,
         ux, uy, uz = -nx, -ny, -nz
     cs = -(ux * dcx + uy * dcy + uz * dcz)
     return hg_phase(g, cs) * (1.0 - fresnel_r(eta, c1)) * math.exp(-sigma_t * l_in) / J
+
+
+@njit(cache=True, error_model="numpy")
+def _face_candidate(prm, o, x, y, z, lx, ly, lz):
+    """Can the face record at prm[o] (:func:`.shapes.convex_face_table`) carry a refracted connection x <- b <- L?
+    It must face the light (h > 0), hold x on its inner side, and the segment F..P that contains b (F the foot of
+    L, P the projection of x on the plane; b is a convex combination of the two) must not lie entirely beyond one
+    boundary edge (tolerance ``tol``, also used by the inside test of b). Returns (ok, depth of x below the
+    plane, tol, offset of the next record)."""
+    nx, ny, nz, c = prm[o], prm[o + 1], prm[o + 2], prm[o + 3]
+    ne = int(prm[o + 7])
+    nxt = o + 8 + 4 * ne
+    h = lx * nx + ly * ny + lz * nz - c
+    dep = c - (x * nx + y * ny + z * nz)
+    tol = 1e-12 * (abs(h) + abs(dep) + abs(c))
+    if not (h > 0.0 and dep >= 0.0):
+        return False, dep, tol, nxt
+    fx, fy, fz = lx - h * nx, ly - h * ny, lz - h * nz
+    px, py, pz = x + dep * nx, y + dep * ny, z + dep * nz
+    for e in range(ne):
+        q = o + 8 + 4 * e
+        if (prm[q] * fx + prm[q + 1] * fy + prm[q + 2] * fz < prm[q + 3] - tol
+                and prm[q] * px + prm[q + 1] * py + prm[q + 2] * pz < prm[q + 3] - tol):
+            return False, dep, tol, nxt
+    return True, dep, tol, nxt
+
+
+@njit(cache=True, error_model="numpy")
+def mesh_min_inside_length(prm, x, y, z, lx, ly, lz):
+    """Lower bound on |x - b| over the refracted connections through a convex mesh (:func:`mesh_connections`):
+    the smallest depth of x below the plane of a face that can carry one (|x - b| >= that depth); inf if none."""
+    best = math.inf
+    o = FACE_TABLE_START
+    for _ in range(int(prm[0])):
+        ok, dep, _tol, o_next = _face_candidate(prm, o, x, y, z, lx, ly, lz)
+        if ok:
+            best = min(best, dep)
+        o = o_next
+    return best
+
+
+@njit(cache=True, error_model="numpy")
+def mesh_connections(prm, x, y, z, lx, ly, lz, eta, sigma_t, g, dcx, dcy, dcz):
+    """Sum over the refracted connections x <- b <- L through the flat faces of a CONVEX closed mesh of
+    p(cos) F_t exp(-sigma_t |x - b|) / J (per unit intensity); ``prm`` is the face table of
+    :func:`.shapes.convex_face_table` (coplanar triangles merged into convex polygons).
+
+    For a convex body every face that faces the light (h > 0) lies in a plane with exactly one stationary point b
+    (:func:`plane_connection`, as for the box's faces); the connection exists iff b lies in the face polygon
+    (tolerance 1e-12 of the scale, like the box's), and then both segments are unoccluded: x -> b inside
+    (convexity) and b -> L in the open outer half-space of the face plane, which the body does not reach.
+    Cost per call: O(faces + boundary edges) plus one plane solution per candidate face. Non-convex meshes are
+    rejected by :func:`simulators.mc.render` (shadowed faces and re-entering light are not handled).
+    """
+    tot = 0.0
+    o = FACE_TABLE_START
+    for _ in range(int(prm[0])):
+        cand, _dep, tol, o_next = _face_candidate(prm, o, x, y, z, lx, ly, lz)
+        if cand:
+            nx, ny, nz = prm[o], prm[o + 1], prm[o + 2]
+            ok, bx, by, bz, J, c1, l_in = plane_connection(prm[o + 4], prm[o + 5], prm[o + 6], nx, ny, nz,
+                                                           x, y, z, lx, ly, lz, eta)
+            if ok and J > 0.0:
+                inside = True
+                for e in range(int(prm[o + 7])):
+                    q = o + 8 + 4 * e
+                    if prm[q] * bx + prm[q + 1] * by + prm[q + 2] * bz < prm[q + 3] - tol:
+                        inside = False
+                        break
+                if inside:
+                    tot += _connection_term(x, y, z, bx, by, bz, J, c1, l_in, nx, ny, nz, eta, sigma_t, g,
+                                            dcx, dcy, dcz)
+        o = o_next
+    return tot
 
 
 @njit(cache=True, error_model="numpy")
@@ -312,6 +396,8 @@ def min_inside_length(kind, prm, x, y, z, lx, ly, lz, eta):
         return max(0.0, best) if best < math.inf else 0.0
     if kind == SPHERE:
         return sphere_min_inside_length(prm[0], prm[1], prm[2], prm[3], x, y, z, lx, ly, lz)
+    if kind == MESH:
+        return mesh_min_inside_length(prm, x, y, z, lx, ly, lz)  # inf: no face can connect (q = 0)
     return 0.0
 
 
@@ -380,6 +466,8 @@ def light_contribution(kind, prm, nbox, nidx, tris, eps_t, stack, x, y, z, dcx, 
     if kind == SPHERE:
         return sphere_connections(prm[0], prm[1], prm[2], prm[3], x, y, z, lx, ly, lz, eta, sigma_t, g,
                                   dcx, dcy, dcz, n_scan)
+    if kind == MESH:
+        return mesh_connections(prm, x, y, z, lx, ly, lz, eta, sigma_t, g, dcx, dcy, dcz)
     return 0.0
 
 

@@ -11,7 +11,8 @@ symmetric). The two kinds of light are estimated without bias by:
   sampled again) when it hits it, so inter-reflection through the outside is exact.
 - point lights: next-event estimation at every collision (:mod:`.nee`): straight-line connections with exact
   occlusion for eta = 1; refracted connections through smooth analytic boundaries (half-space, slab, box,
-  sphere) for eta != 1. A point light is never hit by an escaping walk, so nothing is counted twice.
+  sphere) and convex triangle meshes for eta != 1 (non-convex meshes: eta = 1 only). A point light is never
+  hit by an escaping walk, so nothing is counted twice.
 
 Estimator per pixel: ``spp`` independent paths, each with its own random stream keyed by (seed, channel, pixel,
 sample) (:mod:`.rng`), so the image does not depend on the thread count or schedule; the per-pixel mean and its
@@ -229,7 +230,8 @@ def render(shape: Shape, media: Medium | Sequence[Medium], camera: Any, lights: 
     ``spp`` paths per pixel (>= 2 for a standard error). With more than ``max_sampled_lights`` point lights one
     light is drawn per collision with probability proportional to its intensity. ``nee_tau``, ``rr_weight``,
     ``rr_survival``: variance-only knobs (see :mod:`.walk`). Raises ValueError for a point light inside the
-    object, for media with different eta, or for point lights with a mesh and eta != 1 (not supported).
+    object, for media with different eta, or for point lights with a non-convex mesh and eta != 1 (not supported:
+    refracted connections are found face by face, which needs every face that faces the light to see it).
     """
     ms = _media_list(media)
     etas = {m.eta for m in ms}
@@ -243,9 +245,10 @@ def render(shape: Shape, media: Medium | Sequence[Medium], camera: Any, lights: 
     if len(kl[0].positions_mm):
         if np.any(shape.contains(kl[0].positions_mm)):
             raise ValueError("point lights must lie outside the object")
-        if geo.kind == MESH and abs(eta - 1.0) >= 1e-12:
-            raise ValueError("point lights through a refractive mesh boundary are not supported "
-                             "(use eta = 1, an analytic shape, or distant lights)")
+        if geo.kind == MESH and abs(eta - 1.0) >= 1e-12 and not geo.convex:
+            raise ValueError("point lights through a refractive (eta != 1) mesh boundary need a convex mesh, and "
+                             "this mesh is not convex (a vertex lies outside a face plane); use eta = 1, a convex "
+                             "mesh, an analytic shape, or distant lights")
     origins, dirs = camera.pixel_rays()
     h, w = camera.height_px, camera.width_px
     o = np.ascontiguousarray(origins.reshape(-1, 3), dtype=np.float64)

@@ -23,7 +23,8 @@ import numpy.typing as npt
 from numba import njit
 
 __all__ = ["HALF_SPACE", "SLAB", "SPHERE", "BOX", "MESH", "Geometry", "HalfSpace", "Slab", "Sphere", "Box",
-           "Mesh", "Shape", "nearest_hit", "surface_distance", "STACK_SIZE"]
+           "Mesh", "Shape", "nearest_hit", "surface_distance", "convex_polyhedron", "convex_face_table",
+           "FACE_TABLE_START", "STACK_SIZE"]
 
 HALF_SPACE, SLAB, SPHERE, BOX, MESH = 0, 1, 2, 3, 4
 STACK_SIZE = 64
@@ -36,7 +37,7 @@ class Geometry(NamedTuple):
     """Arrays describing one shape to the kernels (see module docstring)."""
 
     kind: int
-    params: FloatArray          # (8,)
+    params: FloatArray          # (8,); convex meshes: (8 + ...,) the face table of :func:`convex_face_table`
     nodes_box: FloatArray       # (N, 6) min xyz, max xyz (meshes; (1, 6) dummy otherwise)
     nodes_idx: npt.NDArray[np.int64]  # (N, 4) left, right, first triangle, triangle count (count > 0: leaf)
     triangles: FloatArray       # (M, 12) v0, e1 = v1 - v0, e2 = v2 - v0, outward unit normal
@@ -50,9 +51,9 @@ def _dummy_bvh() -> tuple[FloatArray, npt.NDArray[np.int64], FloatArray]:
     return np.zeros((1, 6)), np.zeros((1, 4), dtype=np.int64), np.zeros((1, 12))
 
 
-def _geometry(kind: int, params: list[float], scale: float, convex: bool = True,
+def _geometry(kind: int, params: list[float] | FloatArray, scale: float, convex: bool = True,
               bvh: tuple[FloatArray, npt.NDArray[np.int64], FloatArray] | None = None) -> Geometry:
-    p = np.zeros(8)
+    p = np.zeros(max(8, len(params)))
     p[:len(params)] = params
     nb, ni, tr = bvh if bvh is not None else _dummy_bvh()
     scale = max(1.0, float(scale))
@@ -181,10 +182,109 @@ def build_bvh(vertices: FloatArray, faces: npt.NDArray[np.int64], leaf_size: int
     return np.asarray(boxes), np.asarray(idx, dtype=np.int64), np.ascontiguousarray(tris)
 
 
+def convex_polyhedron(vertices: npt.ArrayLike, faces: npt.ArrayLike, rel_tol: float = 1e-6) -> bool:
+    """True when every vertex lies on the inner side of every (non-degenerate) face plane, within ``rel_tol``
+    times the bounding-box diagonal, for outward-wound ``faces``: the closed mesh then bounds the intersection of
+    its faces' inner half-spaces (a convex polyhedron). This is the property the refracted point-light connections
+    of :mod:`.nee` rely on (a face that faces the light sees it unoccluded from outside and every interior point
+    unoccluded from inside). Cost O(faces x vertices), in chunks; stops at the first violating chunk."""
+    v = np.asarray(vertices, float)
+    f = np.asarray(faces, dtype=np.int64)
+    tri = v[f]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area2 = np.linalg.norm(n, axis=1)
+    diag = float(np.linalg.norm(np.ptp(v, axis=0)))
+    keep = area2 > 1e-12 * max(diag, 1e-300) ** 2
+    if not np.any(keep):
+        return False
+    n = n[keep] / area2[keep, None]
+    off = np.einsum("ij,ij->i", n, tri[keep, 0])
+    tol = rel_tol * diag
+    chunk = max(1, 1_000_000 // max(1, len(v)))
+    for s in range(0, len(n), chunk):
+        if float((v @ n[s:s + chunk].T - off[s:s + chunk]).max()) > tol:
+            return False
+    return True
+
+
+FACE_TABLE_START = 8  # params[0] = number of faces; face records from params[8] on
+
+
+def _hull_2d(q: FloatArray) -> npt.NDArray[np.int64]:
+    """Indices of the 2-D convex hull of points q (K, 2), counter-clockwise, collinear points dropped (Andrew's
+    monotone chain)."""
+    order = np.lexsort((q[:, 1], q[:, 0]))
+
+    def cross(o: int, a: int, b: int) -> float:
+        return float((q[a, 0] - q[o, 0]) * (q[b, 1] - q[o, 1]) - (q[a, 1] - q[o, 1]) * (q[b, 0] - q[o, 0]))
+
+    lower: list[int] = []
+    for i in order:
+        while len(lower) >= 2 and cross(lower[-2], lower[-1], i) <= 0:
+            lower.pop()
+        lower.append(int(i))
+    upper: list[int] = []
+    for i in order[::-1]:
+        while len(upper) >= 2 and cross(upper[-2], upper[-1], i) <= 0:
+            upper.pop()
+        upper.append(int(i))
+    return np.asarray(lower[:-1] + upper[:-1], dtype=np.int64)
+
+
+def convex_face_table(vertices: npt.ArrayLike, faces: npt.ArrayLike, normal_tol: float = 1e-6) -> FloatArray:
+    """The flat faces of a convex polyhedron (outward-wound triangles ``faces``) packed for the kernels.
+
+    Triangles whose outward unit normals agree within ``normal_tol`` form one face (a convex polyhedron has one
+    face per outward normal). A face is stored as its unit normal n, offset c = n.p of its plane, a point p0 on it,
+    and its boundary as the 2-D convex hull of its vertices in the plane: edges (m, d) with in-plane inward unit
+    normal m, inside iff m.q >= d. Layout (floats): [F, 0 x 7, then per face: nx, ny, nz, c, p0x, p0y, p0z,
+    n_edges, then per edge: mx, my, mz, d]. Degenerate triangles (zero area) are ignored."""
+    v = np.asarray(vertices, float)
+    f = np.asarray(faces, dtype=np.int64)
+    tri = v[f]
+    nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area2 = np.linalg.norm(nrm, axis=1)
+    diag = float(np.linalg.norm(np.ptp(v, axis=0)))
+    keep = np.flatnonzero(area2 > 1e-12 * max(diag, 1e-300) ** 2)
+    nrm = nrm[keep] / area2[keep, None]
+    label = np.full(len(keep), -1, dtype=np.int64)
+    groups: list[npt.NDArray[np.int64]] = []
+    for i in range(len(keep)):
+        if label[i] >= 0:
+            continue
+        same = np.flatnonzero((label < 0) & (np.linalg.norm(nrm - nrm[i], axis=1) <= normal_tol))
+        label[same] = len(groups)
+        groups.append(same)
+    out: list[float] = [float(len(groups))] + [0.0] * (FACE_TABLE_START - 1)
+    for g in groups:
+        n = nrm[g].mean(axis=0)
+        n /= np.linalg.norm(n)
+        idx = np.unique(f[keep[g]].ravel())
+        pts = v[idx]
+        c = float(np.mean(pts @ n))
+        p0 = pts.mean(axis=0)
+        p0 = p0 + (c - float(p0 @ n)) * n
+        a = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+        a /= np.linalg.norm(a)
+        b = np.cross(n, a)
+        q = np.stack([(pts - p0) @ a, (pts - p0) @ b], axis=1)
+        hull = _hull_2d(q)
+        out += [*n, c, *p0, float(len(hull))]
+        for k in range(len(hull)):
+            q0, q1 = q[hull[k]], q[hull[(k + 1) % len(hull)]]
+            t = q1 - q0
+            m2 = np.array([-t[1], t[0]]) / np.linalg.norm(t)    # left of a counter-clockwise edge: inside
+            m = m2[0] * a + m2[1] * b
+            out += [*m, float(m2 @ q0 + m @ p0)]
+    return np.asarray(out, dtype=np.float64)
+
+
 @dataclass(frozen=True)
 class Mesh:
     """A closed (watertight) triangle mesh; face winding gives the outward normals (inverted if the signed volume
-    is negative). Needs ``trimesh`` only to read the mesh; ray queries use this module's BVH."""
+    is negative). Needs ``trimesh`` only to read the mesh; ray queries use this module's BVH. ``geometry().convex``
+    is trimesh's ``is_convex`` and :func:`convex_polyhedron` (point lights with eta != 1 need it); a convex mesh's
+    ``params`` hold its flat faces (:func:`convex_face_table`) for the refracted point-light connections."""
 
     mesh: Any  # trimesh.Trimesh
     leaf_size: int = 4
@@ -202,7 +302,9 @@ class Mesh:
                 f = f[:, ::-1]
             bvh = build_bvh(v, f, self.leaf_size)
             scale = float(np.abs(v).max() + np.ptp(v, axis=0).max())
-            self._cache["g"] = _geometry(MESH, [], scale, bool(self.mesh.is_convex), bvh)
+            convex = bool(self.mesh.is_convex) and convex_polyhedron(v, f)
+            prm = convex_face_table(v, f) if convex else []
+            self._cache["g"] = _geometry(MESH, prm, scale, convex, bvh)
         return self._cache["g"]
 
     def contains(self, points_mm: npt.ArrayLike) -> npt.NDArray[np.bool_]:
