@@ -229,6 +229,19 @@ def _cmd_devices(args: argparse.Namespace) -> int:
     return 0 if all(r["ok"] for r in rows) else 1
 
 
+def _int_at_least(lo: int):
+    """argparse type: an integer >= lo (for the single-image reference options)."""
+    def parse(text: str) -> int:
+        try:
+            v = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {lo}, got {text!r}") from None
+        if v < lo:
+            raise argparse.ArgumentTypeError(f"expected an integer >= {lo}, got {v}")
+        return v
+    return parse
+
+
 def _cmd_estimate(args: argparse.Namespace) -> int:
     if args.what == "single-image":
         from .scene_file import run_cli as run_scene  # a scene file a user brings (docs/scene-file.md)
@@ -334,6 +347,17 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("scene", type=Path, help="scene file (TOML)")
     q.add_argument("--method", choices=["direct", "tikhonov", "pinv"], default=None,
                    help="estimation method (default: the scene file's, else direct)")
+    q.add_argument("--model", choices=["dipole-jensen", "dipole-better", "mc-table", "mc-table+reference"],
+                   default=None, help="profile model (default: the scene file's [material].model, else "
+                   "dipole-jensen); mc-table+reference corrects the Monte Carlo table fit by Monte Carlo renders "
+                   "of the scene (one per iteration; docs/scene-file.md)")
+    q.add_argument("--reference-spp", type=_int_at_least(2), default=None, metavar="N",
+                   help="mc-table+reference: paths per pixel of each reference render (default: the scene "
+                        "file's, else 128)")
+    q.add_argument("--reference-iterations", type=_int_at_least(1), default=None, metavar="K",
+                   help="mc-table+reference: at most K reference renders (default: the scene file's, else 4)")
+    q.add_argument("--reference-seed", type=_int_at_least(0), default=None, metavar="S",
+                   help="mc-table+reference: seed of every reference render (default: the scene file's, else 1)")
     q.add_argument("--out", type=Path, default=None,
                    help="JSON result file (default: <scene>.estimate.json beside the scene file)")
     q.add_argument("--json", action="store_true", help="print the result as JSON instead of a table")

@@ -49,7 +49,8 @@ MESH_SUFFIXES = (".ply", ".obj", ".stl")
 MASK_SUFFIXES = (".png", ".tif", ".tiff", ".bmp", ".exr")
 ENV_SUFFIXES = (".exr", ".hdr", ".tif", ".tiff", ".png")
 METHODS = ("direct", "tikhonov", "pinv")
-MODELS = ("dipole-jensen", "dipole-better")
+MODELS = ("dipole-jensen", "dipole-better", "mc-table", "mc-table+reference")
+REFERENCE_MODEL = "mc-table+reference"  # the Monte Carlo table corrected by reference renders (rig.scene_reference)
 INTEGER_SATURATION = 0.98  # default saturation level of integer images (16-bit PNG/TIFF, RAW), white = 1
 _AXES = {"+x": (1.0, 0.0, 0.0), "-x": (-1.0, 0.0, 0.0), "+y": (0.0, 1.0, 0.0), "-y": (0.0, -1.0, 0.0),
          "+z": (0.0, 0.0, 1.0), "-z": (0.0, 0.0, -1.0)}
@@ -151,6 +152,28 @@ class DistortedCamera:
     def view_directions(self, points_mm: Any) -> Array:
         return self.pinhole.view_directions(points_mm)
 
+    def pixel_rays(self) -> tuple[Array, Array]:
+        """Origins (H, W, 3) and unit directions (H, W, 3) of the rays that the lens maps onto every pixel centre
+        (for renderers): OpenCV's iterative undistortion of the pixel centres, checked by reprojecting with
+        :meth:`project`; raises ValueError when some pixel does not come back within 1e-3 px."""
+        import cv2
+
+        cam = self.pinhole
+        h, w = cam.height_px, cam.width_px
+        v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+        pix = np.stack([u, v], axis=-1)
+        crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+        und = cv2.undistortPoints(pix.reshape(-1, 1, 2), cam.K, np.asarray(self.distortion, float), None, None,
+                                  criteria=crit).reshape(h, w, 2)
+        d = np.concatenate([und, np.ones((h, w, 1))], axis=-1) @ cam.R
+        d /= np.linalg.norm(d, axis=-1, keepdims=True)
+        back, _ = self.project(cam.C + d)
+        gap = np.linalg.norm(back - pix, axis=-1)
+        err = float(np.max(gap)) if np.all(np.isfinite(gap)) else np.inf
+        if not err <= 1e-3:
+            raise ValueError(f"undistorted pixel rays reproject up to {err:.3g} px from their pixel centres")
+        return np.broadcast_to(cam.C, d.shape).copy(), d
+
 
 @dataclass(frozen=True)
 class CameraSpec:
@@ -250,6 +273,9 @@ class EstimationSpec:
     cutoff_mm: float | None
     model_error: float
     max_patches: int
+    reference_spp: int = 128  # model mc-table+reference: paths per pixel of each Monte Carlo reference render
+    reference_iterations: int = 4  # at most this many reference renders
+    reference_seed: int = 1  # the seed of every reference render (common random numbers)
 
 
 @dataclass(frozen=True)
@@ -282,6 +308,8 @@ class Scene:
     image_meta: dict[str, Any] = field(repr=False, compare=False, default_factory=dict)
     mask_data: NDArray[np.bool_] | None = field(repr=False, compare=False, default=None)  # (H, W) True = use
     environment_data: Array | None = field(repr=False, compare=False, default=None)  # (h, w, C) radiance
+    # the mesh as read (mm, world frame) before max_edge_mm subdivision: the surface of the Monte Carlo reference
+    render_mesh_data: Any = field(repr=False, compare=False, default=None)
 
     @property
     def channels(self) -> int:
@@ -702,7 +730,7 @@ def parse_scene(data: dict[str, Any], path: Path, file: str | None = None) -> Sc
 
     es = top.section("estimation") if top.has("estimation") else _SceneReader(file, {}, "estimation.")
     es.only(("method", "bin_mm", "window_px", "max_view_angle_deg", "occlusion", "cutoff_mm", "model_error",
-             "max_patches"))
+             "max_patches", "reference_spp", "reference_iterations", "reference_seed"))
     window = es.int("window_px", 1, lo=1, hi=15)
     if window % 2 == 0:
         raise es.fail("window_px", "an odd number of pixels (1, 3, 5, ...)", window)
@@ -713,8 +741,12 @@ def parse_scene(data: dict[str, Any], path: Path, file: str | None = None) -> Sc
         method=es.str("method", "direct", choices=METHODS), bin_mm=es.num("bin_mm", 0.35, positive=True),
         window_px=window, max_view_angle_deg=es.num("max_view_angle_deg", 70.0, lo=1.0, hi=89.0),
         occlusion=occl, cutoff_mm=es.opt_num("cutoff_mm", positive=True),
-        model_error=es.num("model_error", 0.02, lo=0.0, hi=1.0), max_patches=es.int("max_patches", 20000, lo=10))
+        model_error=es.num("model_error", 0.02, lo=0.0, hi=1.0), max_patches=es.int("max_patches", 20000, lo=10),
+        reference_spp=es.int("reference_spp", 128, lo=2, hi=1_000_000),
+        reference_iterations=es.int("reference_iterations", 4, lo=1, hi=100),
+        reference_seed=es.int("reference_seed", 1, lo=0, hi=2 ** 31 - 1))
     n_faces = len(mesh.faces)
+    render_mesh = mesh
     if mesh_spec.max_edge_mm is not None:
         import trimesh
         v, f = trimesh.remesh.subdivide_to_size(mesh.vertices, mesh.faces, max_edge=mesh_spec.max_edge_mm)
@@ -745,7 +777,7 @@ def parse_scene(data: dict[str, Any], path: Path, file: str | None = None) -> Sc
     return Scene(path=path, name=name, sha256=scene_hash, mesh=mesh_spec, camera=camera, image=image_spec,
                  point_lights=tuple(points), directional_lights=tuple(dirs), environment=env, material=material,
                  estimation=estimation, noise=noise, mesh_data=mesh, image_data=image, image_meta=dict(meta),
-                 mask_data=mask, environment_data=env_data)
+                 mask_data=mask, environment_data=env_data, render_mesh_data=render_mesh)
 
 
 def load_scene(path: str | os.PathLike[str]) -> Scene:
@@ -862,7 +894,11 @@ def _scene_summary(scene: Scene) -> dict[str, Any]:
                        "azimuth": scene.environment.azimuth, "rotation_deg": scene.environment.rotation_deg,
                        "max_size": scene.environment.max_size}},
         "material": {"eta": scene.material.eta, "model": scene.material.model},
-        "estimation": {"bin_mm": scene.estimation.bin_mm, "window_px": scene.estimation.window_px,
+        "estimation": {"method": scene.estimation.method, "bin_mm": scene.estimation.bin_mm,
+                       "window_px": scene.estimation.window_px,
+                       "reference_spp": scene.estimation.reference_spp,
+                       "reference_iterations": scene.estimation.reference_iterations,
+                       "reference_seed": scene.estimation.reference_seed,
                        "max_view_angle_deg": scene.estimation.max_view_angle_deg,
                        "occlusion": scene.estimation.occlusion, "cutoff_mm": scene.estimation.cutoff_mm,
                        "model_error": scene.estimation.model_error},
@@ -873,13 +909,19 @@ def _scene_summary(scene: Scene) -> dict[str, Any]:
     return out
 
 
-def estimate_scene(scene: Scene, *, method: str | None = None) -> dict[str, Any]:
+def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None = None,
+                   reference_spp: int | None = None, reference_iterations: int | None = None,
+                   reference_seed: int | None = None) -> dict[str, Any]:
     """Run the single-image method on a loaded scene; return a JSON-able result (docs/scene-file.md, "Output").
 
-    ``method`` overrides the scene's ``[estimation].method``. A failed estimate returns ``success: false``
-    with the reason in ``message`` (never raises for that); input errors were raised by :func:`load_scene`.
+    ``method`` overrides the scene's ``[estimation].method``, ``model`` its ``[material].model``, and the
+    ``reference_*`` arguments its ``[estimation].reference_*`` keys (used by ``model = "mc-table+reference"``:
+    the Monte Carlo table fit corrected by Monte Carlo renders of the scene, :mod:`rig.scene_reference`). A failed
+    estimate returns ``success: false`` with the reason in ``message`` (never raises for that); input errors were
+    raised by :func:`load_scene`, or are raised here as :class:`SceneFileError` when only the reference cannot
+    handle them (e.g. point lights through a non-convex refracting mesh).
     """
-    from estimation.single_image import estimate_single_image, patches_from_mesh
+    from estimation.single_image import SingleImageResult, estimate_single_image, patches_from_mesh
 
     from .estimate import pixel_faces, sample_at_points
 
@@ -887,6 +929,15 @@ def estimate_scene(scene: Scene, *, method: str | None = None) -> dict[str, Any]
     meth = method or scene.estimation.method
     if meth not in METHODS:
         raise SceneFileError(str(scene.path), "estimation.method", "one of " + ", ".join(METHODS), meth)
+    model_name = model or scene.material.model
+    if model_name not in MODELS:
+        raise SceneFileError(str(scene.path), "material.model", "one of " + ", ".join(MODELS), model_name)
+    spp = scene.estimation.reference_spp if reference_spp is None else int(reference_spp)
+    iterations = scene.estimation.reference_iterations if reference_iterations is None else int(reference_iterations)
+    ref_seed = scene.estimation.reference_seed if reference_seed is None else int(reference_seed)
+    if spp < 2 or iterations < 1 or ref_seed < 0:
+        raise ValueError(f"reference_spp must be >= 2, reference_iterations >= 1, reference_seed >= 0; got {spp}, "
+                         f"{iterations}, {ref_seed}")
     cam = scene.camera.model
     mesh = scene.mesh_data
     est = scene.estimation
@@ -932,17 +983,36 @@ def estimate_scene(scene: Scene, *, method: str | None = None) -> dict[str, Any]
     sigma = sigma / k * factor
     e_t = _irradiance(scene, patches)
     n_obs = np.isfinite(obs[patches.visible]).sum(axis=0)
-    res = estimate_single_image(obs, patches, e_t, scene.material.eta, method=meth, model=scene.material.model,
-                                bin_mm=est.bin_mm, cutoff_mm=est.cutoff_mm,
-                                noise_sigma=sigma if scene.noise is not None else None,
-                                model_error=est.model_error)
+    fit_kw: dict[str, Any] = dict(method=meth, bin_mm=est.bin_mm, cutoff_mm=est.cutoff_mm,
+                                  noise_sigma=sigma if scene.noise is not None else None,
+                                  model_error=est.model_error)
+    reference_out: dict[str, Any] | None = None
+    if model_name == REFERENCE_MODEL:
+        from estimation.model_correction import estimate_with_reference
+
+        from .scene_reference import scene_reference
+
+        valid_px = on_object & user_ok & sat_ok & np.all(np.isfinite(img), axis=2)
+        ref, ref_info = scene_reference(scene, patches, valid_px, spp=spp)  # SceneFileError before any fit
+        try:
+            res = estimate_with_reference(obs, patches, e_t, scene.material.eta, ref, base_model="mc-table",
+                                          max_iterations=iterations, seed=ref_seed, **fit_kw)
+        except ValueError as exc:  # e.g. the reference has no value at any observed patch
+            res = SingleImageResult(False, f"Monte Carlo reference: {exc}", meth, model_name, scene.material.eta)
+        reference_out = {**ref_info, "base_model": "mc-table", "max_iterations": iterations, "seed": ref_seed,
+                         "steps": res.extra.get("reference", []), "converged": res.extra.get("converged"),
+                         "renders": list(ref.renders),
+                         "render_seconds_total": float(sum(r["seconds"] for r in ref.renders)),
+                         "seconds_total": res.extra.get("seconds_total")}
+    else:
+        res = estimate_single_image(obs, patches, e_t, scene.material.eta, model=model_name, **fit_kw)
     seconds = time.perf_counter() - t0
     channels = ["R", "G", "B"] if n_ch == 3 else ["Y"]
     out: dict[str, Any] = {
         "format": RESULT_FORMAT, "format_version": 1, "estimator": "single-image",
         "success": bool(res), "message": res.message if patches.visible.any() else
         res.message + " (check the camera pose and that the mesh's face normals point outward)",
-        "method": res.method, "model": res.model, "eta": scene.material.eta, "channels": channels,
+        "method": res.method, "model": model_name, "eta": scene.material.eta, "channels": channels,
         "seconds": seconds,
         "observations": {"patches": int(len(patches.areas_mm2)), "visible": int(patches.visible.sum()),
                          "observed_per_channel": n_obs.tolist(), "excluded_patches": excluded,
@@ -966,6 +1036,10 @@ def estimate_scene(scene: Scene, *, method: str | None = None) -> dict[str, Any]
         out["correlation_log"] = res.correlation_log
         out["sigma_a_identifiable"] = list(res.sigma_a_identifiable_per_channel)
         out["identifiability_reason"] = res.identifiability_reason
+    out["model_bias"] = res.extra.get("model_bias")
+    if reference_out is not None:
+        out["reference"] = reference_out
+        out["converged"] = reference_out["converged"]
     d = res.diagnostics
     if d is not None:
         out["diagnostics"] = {"condition_number": d.condition_number, "n_bins": d.n_bins,
@@ -994,6 +1068,37 @@ def _fmt(v: Any) -> str:
     return "-" if v is None else f"{v:.4g}"
 
 
+def _cells(values: Any) -> str:
+    return "[" + ", ".join(_fmt(v) for v in (values or [])) + "]"
+
+
+def _reference_lines(result: dict[str, Any]) -> list[str]:
+    """The reference iteration of model mc-table+reference: parameters and render seconds per step, converged,
+    and the bias of the flat mc-table model in this scene."""
+    ref = result.get("reference")
+    if not ref:
+        return []
+    lines = [f"  Monte Carlo reference ({ref.get('spp')} spp per render, seed {ref.get('seed')}, at most "
+             f"{ref.get('max_iterations')} renders, window {ref.get('window_px')} px): converged "
+             f"{'yes' if ref.get('converged') else 'NO'}, {len(ref.get('renders', []))} renders, "
+             f"{ref.get('render_seconds_total', 0.0):.1f} s rendering",
+             f"    {'step':<10}{'sigma_s_prime [1/mm]':<28}{'sigma_a [1/mm]':<28}{'render s':<10}"
+             f"{'kappa median (reference / mc-table)'}"]
+    for st in ref.get("steps", []):
+        it = st.get("iteration")
+        label = "0 mc-table" if it == 0 else f"{it}"
+        lines.append(f"    {label:<10}{_cells(st.get('sigma_s_prime_per_mm')):<28}{_cells(st.get('sigma_a_per_mm')):<28}"
+                     f"{st.get('render_seconds', 0.0):<10.1f}{_cells(st.get('kappa_median'))}")
+    bias = result.get("model_bias") or {}
+    if "radiance_ratio_median" in bias:
+        lines.append(f"  model bias in this scene (mc-table / reference radiance per patch): median "
+                     f"{_cells(bias.get('radiance_ratio_median'))}, 5-95 % {_cells(bias.get('radiance_ratio_p05'))}"
+                     f"-{_cells(bias.get('radiance_ratio_p95'))}, rms log {_cells(bias.get('rms_log_ratio'))}")
+    for n in ref.get("notes", []):
+        lines.append(f"  reference: {n}")
+    return lines
+
+
 def format_table(result: dict[str, Any]) -> str:
     """A readable table of the parameters with their 95 % intervals."""
     prov = result.get("provenance", {})
@@ -1004,6 +1109,7 @@ def format_table(result: dict[str, Any]) -> str:
              f"{obs.get('observed_per_channel')}, {result.get('seconds', 0.0):.1f} s"]
     if not result.get("success"):
         lines.append(f"  FAILED: {result.get('message')}")
+        lines += _reference_lines(result)
         return "\n".join(lines)
     chans = result["channels"]
     lines.append("  " + f"{'quantity':<26}" + "".join(f"{c:<28}" for c in chans))
@@ -1024,6 +1130,7 @@ def format_table(result: dict[str, Any]) -> str:
     lines.append("  (95 % intervals in parentheses; sigma_a: profile likelihood, lower bound 0 when one-sided)")
     if not all(ident):
         lines.append(f"  {result.get('identifiability_reason', '')}")
+    lines += _reference_lines(result)
     notes = result.get("diagnostics", {}).get("notes", [])
     for n in notes:
         lines.append(f"  note: {n}")
@@ -1033,14 +1140,18 @@ def format_table(result: dict[str, Any]) -> str:
 
 
 def run_cli(args: Any) -> int:
-    """``rig estimate single-image SCENE [--method M] [--out FILE] [--json]``.
+    """``rig estimate single-image SCENE [--method M] [--model MODEL] [--reference-spp N]
+    [--reference-iterations K] [--reference-seed S] [--out FILE] [--json]``.
 
     Prints a table (or the JSON with ``--json``) and writes the JSON atomically to ``--out`` or
     ``<scene>.estimate.json`` beside the scene file. Returns 0 on success, 1 if the estimate failed (the reason
     is printed); input errors raise :class:`SceneFileError` (the CLI prints them and returns 2).
     """
     scene = load_scene(args.scene)
-    result = estimate_scene(scene, method=getattr(args, "method", None))
+    result = estimate_scene(scene, method=getattr(args, "method", None), model=getattr(args, "model", None),
+                            reference_spp=getattr(args, "reference_spp", None),
+                            reference_iterations=getattr(args, "reference_iterations", None),
+                            reference_seed=getattr(args, "reference_seed", None))
     out = getattr(args, "out", None)
     out_path = Path(out) if out is not None else Path(args.scene).with_suffix(".estimate.json")
     text = json.dumps(result, indent=2, allow_nan=False) + "\n"
