@@ -43,7 +43,9 @@ solution x_{i+1} (not rendered again).
 Censoring: where A_obs exceeds the albedo of a non-absorbing sphere of the observed shortening (marble red and
 green on Monte Carlo frames) the uncorrected inversion clips sigma_a to 0. The reference is then rendered at a
 floor ``sigma_a_floor_rel`` x sigma_t' (a log iteration needs sigma_a > 0); dividing by kappa_A (> 1) brings the
-corrected albedo back into range. A channel still censored after step 1 is reported (sigma_a 0).
+corrected albedo back into range. A channel still censored after step 1, or whose later solution sits on that
+floor (the corrected observables want sigma_a below it, as for a non-absorbing material such as Spectralon), is
+reported censored: sigma_a 0, a one-sided interval, D from sigma_s' alone.
 
 Intervals (95 %): the observed (A, b) intervals (the summary's order-statistic intervals of the medians: pixel
 noise plus the summary's systematic allowances) and the reference's (the same intervals of the reference render:
@@ -374,7 +376,9 @@ def estimate_sphere_with_reference(observed: SphereObservables | DiffusionSummar
                 rev = np.sign(x_new - x) * np.sign(last_step) < 0
                 relax = np.where(rev, np.maximum(relax * 0.5, 0.25), np.minimum(relax * 2.0, 1.0))
             x_new = x + relax * (x_new - x)
-            cens = np.zeros(n_ch, bool)
+            # a solution on the sigma_a floor (the solve wants sigma_a below it) is censored at 0, as in step 1
+            p_n = np.exp(x_new)
+            cens = p_n[:, 1] <= sigma_a_floor_rel * (p_n[:, 0] + p_n[:, 1]) * (1.0 + 1e-6)
         B = _fast_jacobian(x_new, rho, eta_f, fdr) + K
         step = np.where(use[:, None], x_new - x, 0.0)
         if it > 1:

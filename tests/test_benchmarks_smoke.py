@@ -70,3 +70,20 @@ def test_mc_single_image_benchmark_quick_prints_models_and_verdict():
     assert "paths/s" in proc.stdout and "ACCEPTANCE (best model" in proc.stdout
     for model in ("mc-table", "dipole-better", "dipole-jensen"):
         assert f"| {model} |" in proc.stdout
+
+
+def test_mc_gradients_benchmark_quick_prints_materials_and_models(tmp_path):
+    out = tmp_path / "mc_gradients.json"
+    proc = _run("mc_gradients.py", "--json", str(out))
+    assert proc.returncode == 0, proc.stderr
+    assert "paths/s" in proc.stdout and "## D / D_true - 1 per material and channel" in proc.stdout
+    models = ("dipole-jensen", "dipole-better", "mc-table", "dipole-jensen+reference")
+    assert "| material | ch | D_true mm | " + " | ".join(models) + " |" in proc.stdout  # the per-model header
+    for name in ("marble", "skin1"):
+        for ch in "RGB":
+            assert f"| {name} | {ch} |" in proc.stdout
+        for model in models:
+            assert f"| {model} | R |" in proc.stdout
+    rows = json.loads(out.read_text())["rows"]
+    assert len(rows) == 2 * 3 * len(models)
+    assert all(r["status"].split()[0] in ("ok", "censored", "failed:") for r in rows)
