@@ -109,10 +109,12 @@ def check_grounded_model(model: str, method: str, eta: float | None = None) -> s
 
 @lru_cache(maxsize=16)
 def _model_tables(eta: float, fdr: str, model: str, n: int = 4097) -> tuple[NDArray[np.float32], NDArray[np.float32],
-                                                                            NDArray[np.float32], float, float]:
+                                                                            NDArray[np.float32], float, float, float]:
     """Half-space tables of ``model`` (sigma_t' = 1): s(R_d) on a uniform R_d grid in [0, 1] (n), and R_d(s),
     s G(s) on a uniform s grid in [0, sqrt 3] (n; s G is finite at s = 0 for the dipoles), plus the R_d range the
-    model covers (the table's albedo range for "mc-table": outside it the pixel is censored at the edge)."""
+    model covers (the table's albedo range for "mc-table": outside it the pixel is censored at the edge) and the
+    smallest s the model covers (mc-table: s of its largest albedo, so that an albedo above the table's largest R_d
+    is censored at that edge instead of reaching s = 0, where G = s G / s is 0 / 0; the dipoles: 0)."""
     s_f = np.linspace(0.0, _S_MAX, 65537)
     a_f = 1.0 - s_f * s_f / 3.0
     s_g = np.linspace(0.0, _S_MAX, n)
@@ -126,6 +128,7 @@ def _model_tables(eta: float, fdr: str, model: str, n: int = 4097) -> tuple[NDAr
         r_g = tab.total_reflectance(np.clip(a_g, lo, hi), eta)
         sg = s_g * second_moment_factor(np.clip(a_g, lo, hi), eta)
         r_lo, r_hi = float(tab.total_reflectance(lo, eta)), float(tab.total_reflectance(hi, eta))
+        s_min = float(np.sqrt(3.0 * (1.0 - hi)))
     else:
         from .dipole import second_moment_mm2, total_diffuse_reflectance
 
@@ -137,8 +140,9 @@ def _model_tables(eta: float, fdr: str, model: str, n: int = 4097) -> tuple[NDAr
             sg = s_g * second_moment_mm2(ag, 1.0 - ag, eta, model=model, fdr=fdr)
         sg[0] = 2.0 * sg[1] - sg[2]  # s G at s = 0 (finite): linear extrapolation
         r_lo, r_hi = float(r_f[-1]), float(r_f[0])
+        s_min = 0.0
     s_of_r = np.interp(np.linspace(0.0, 1.0, n), r_f[::-1], s_f[::-1])
-    return (s_of_r.astype(np.float32), np.asarray(r_g, np.float32), np.asarray(sg, np.float32), r_lo, r_hi)
+    return (s_of_r.astype(np.float32), np.asarray(r_g, np.float32), np.asarray(sg, np.float32), r_lo, r_hi, s_min)
 
 
 def _s_lookup(s: Array, table: NDArray[np.float32]) -> Array:
@@ -794,7 +798,7 @@ def estimate_diffusion(maps: GradientMaps, true_normals: ArrayLike, *, sphere_ra
                         s[known] = np.sqrt(3.0 * np.clip(1.0 - al, 0.0, None))
                         l_mm[known], cens[known] = ll, cc
                 elif mtab is not None:  # small_blur with a tabulated half-space model
-                    s = _uniform_lookup(A, mtab[0])  # alpha' from the model's R_d
+                    s = np.maximum(_uniform_lookup(A, mtab[0]), f32(mtab[5]))  # alpha' from the model's R_d
                     r2 = 2.0 * (1.0 - S) * rho3 * rho3
                     G = _s_lookup(s, mtab[2]) / s
                     cens = (r2 <= 0) | ~(A > f32(mtab[3])) | ~(A < f32(mtab[4]))

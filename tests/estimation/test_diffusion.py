@@ -8,6 +8,8 @@ object) included. Pixels are B F_t(n0.v)/pi times a known camera gain, cross-pol
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -572,6 +574,30 @@ def test_each_model_recovers_its_own_forward(model) -> None:
     if model == "mc-table":
         np.testing.assert_allclose(bias["r2_ratio"], 1.0, rtol=1e-9)
         np.testing.assert_allclose(bias["R_d_rel_diff"], 0.0, atol=1e-12)
+
+
+def test_mc_table_censors_an_albedo_above_its_largest_reflectance() -> None:
+    """An apparent albedo above the Monte Carlo table's largest R_d (0.987 at eta 1.3; spectralon-like, or a small
+    sphere's curvature gain: benchmarks/mc_gradients.py) is censored at the table's edge with finite l', not NaN
+    (it was s = 0 -> G = 0/0 -> 'no usable pixels'). The other channels are unaffected."""
+    from estimation.diffusion import estimate_diffusion
+    from estimation.mc_table import default_table
+
+    ssp, sa = np.array([2.19, 2.62, 3.00]), np.array([0.0021, 0.0041, 0.0071])
+    maps, nn, rd, _ = _first_order_maps("mc-table", ssp, sa)
+    tab = default_table()
+    r_max = float(tab.total_reflectance(tab.alpha_prime_range[1], 1.3))
+    albedo = np.array(maps.albedo)
+    albedo[..., 0] = min(0.5 * (r_max + 1.0), 0.999)
+    maps = replace(maps, albedo=albedo.astype(np.float32))
+    dm = estimate_diffusion(maps, nn, sphere_radius_mm=10.0, method="small_blur", model="mc-table")
+    assert not np.asarray(dm.unknown).any()
+    assert np.asarray(dm.censored)[..., 0].all() and not np.asarray(dm.censored)[..., 1:].any()
+    for name in ("l_prime_mm", "alpha_prime", "D_mm"):
+        assert np.all(np.isfinite(np.asarray(getattr(dm, name))[..., 0])), name
+    assert np.asarray(dm.alpha_prime)[..., 0] == pytest.approx(tab.alpha_prime_range[1], rel=1e-4)
+    np.testing.assert_allclose(np.asarray(dm.sigma_s_prime_per_mm)[..., 1:], np.broadcast_to(ssp[1:], (24, 24, 2)),
+                               rtol=2e-3)
 
 
 def test_jensen_bias_against_the_table_has_the_measured_sign() -> None:
