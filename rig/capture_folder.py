@@ -782,6 +782,47 @@ def _strip_gradients(prov: Mapping[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in prov.items() if k not in ("gradients", "maps")}
 
 
+def _check_reference(cap: Capture, reference: Mapping[str, Any]) -> None:
+    """--reference needs a known sphere and an LED calibration (it renders both); refuse clearly otherwise."""
+    if cap.geometry is None:
+        raise ConfigError(str(cap.file), "object.shape", "shape = \"sphere\" with center_mm and radius_mm: "
+                          "--reference renders the known sphere by Monte Carlo, and corrects only a sphere's "
+                          "estimate", "no sphere ([object] missing or shape = \"unknown\")")
+    if cap.leds.ideal:
+        raise ConfigError(str(cap.file), "leds.ideal", "an LED calibration (file = \"leds.csv\" or positions_mm + "
+                          "intensity): --reference renders the capture's LEDs", "ideal = true")
+    for k, lo in (("spp", 2), ("iterations", 1), ("seed", 0)):
+        v = reference.get(k)
+        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < lo):
+            raise ConfigError(f"--reference-{k}", k, f"an integer >= {lo}", v)
+
+
+def _reference_summary(cap: Capture, reference: Mapping[str, Any], leds: LedRig | None, scale: Any, eta: float,
+                       n_ref: NDArray[np.float64], normals: Any, obj: Any, maps: Any, folder_maps: Any,
+                       tile_rows: int) -> dict[str, Any]:
+    """The reference-corrected sphere summary (:func:`rig.folder_reference.reference_corrected_sphere`)."""
+    from .folder_reference import (REFERENCE_ITERATIONS, REFERENCE_SEED, REFERENCE_SPP,
+                                   reference_corrected_sphere)
+
+    assert cap.geometry is not None and leds is not None
+    assert cap.leds.positions_mm is not None and cap.leds.intensity is not None
+    region = np.asarray(obj, dtype=bool) & ~np.asarray(maps.masks.saturated).any(axis=-1)
+    try:
+        out, _ = reference_corrected_sphere(
+            camera=cap.camera, leds=leds, led_positions_mm=cap.leds.positions_mm,
+            led_intensity=cap.leds.intensity, frame_keys=[f.key for f in cap.frames],
+            exposure_s={f.key: f.exposure_s for f in cap.frames}, albedo_scale=scale, eta=eta,
+            reference_normal=n_ref, center_mm=cap.geometry.center_mm, radius_mm=cap.geometry.radius_mm,
+            true_normals=normals, region=region, folder_maps=folder_maps, observed_maps=maps,
+            spp=int(reference.get("spp") or REFERENCE_SPP),
+            iterations=int(reference.get("iterations") or REFERENCE_ITERATIONS),
+            seed=int(REFERENCE_SEED if reference.get("seed") is None else reference["seed"]), tile_rows=tile_rows,
+            render_mode=str(reference.get("render_mode", "mc")))
+    except ValueError as exc:
+        raise CaptureError(f"{cap.file}: the reference-corrected sphere estimate failed: {exc}") from exc
+    return out
+
+
 MEMMAP_MIN_PX = 4_000_000
 """Frames of at least this many pixels get their full-size intermediate maps as memory maps in a scratch folder
 inside the output folder (deleted afterwards) instead of RAM: a 24 MP capture's maps are ~4 frame sets."""
@@ -789,7 +830,8 @@ inside the output folder (deleted afterwards) instead of RAM: a 24 MP capture's 
 
 def estimate_capture(capture: Capture, out_dir: str | Path, fmt: str = "exr", tile_rows: int | None = None, *,
                      preview: str = "auto", memmap_min_px: int = MEMMAP_MIN_PX,
-                     model: str = "dipole-jensen", maps: Any = None, half: bool = False) -> dict[str, Any]:
+                     model: str = "dipole-jensen", maps: Any = None, half: bool = False,
+                     reference: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """Gradient maps (Ma et al. 2007), the grounded diffusion estimate (with a sphere) and the seed's D (with a
     seed calibration) for a loaded capture; writes the maps into ``out_dir`` (:func:`rig.maps_io.write_maps`) and
     returns a JSON-ready summary (per-channel medians, the diffusion summary with intervals, files, notes).
@@ -802,6 +844,11 @@ def estimate_capture(capture: Capture, out_dir: str | Path, fmt: str = "exr", ti
     at the fitted parameters (``diffusion.model_bias``). ``maps``: names of the map files to write (None: all;
     :func:`rig.maps_io.select_maps`), ``half``: normals and albedos as EXR HALF (:data:`rig.maps_io.HALF_OK`);
     the sidecar lists what was written and how the left-out maps are derived.
+
+    ``reference``: None, or {"spp": N, "iterations": K, "seed": S} (missing keys: the defaults of
+    :mod:`rig.folder_reference`): with a sphere and an LED calibration, the sphere summary is also corrected by
+    Monte Carlo renders of the same capture (:func:`rig.folder_reference.reference_corrected_sphere`) and reported
+    as ``diffusion_reference_corrected`` beside the uncorrected ``diffusion``; the per-pixel maps stay uncorrected.
     """
     from estimation.diffusion import check_grounded_model
 
@@ -809,12 +856,14 @@ def estimate_capture(capture: Capture, out_dir: str | Path, fmt: str = "exr", ti
         check_grounded_model(model, "sphere" if model == "dipole-jensen" else "small_blur", capture.radiometry.eta)
     except ValueError as exc:
         raise ConfigError("--model", "model", str(exc), model) from None
+    if reference is not None:
+        _check_reference(capture, reference)
     Path(out_dir).mkdir(parents=True, exist_ok=True)
     scratch = (tempfile.TemporaryDirectory(prefix=".scratch-", dir=out_dir)
                if capture.shape[0] * capture.shape[1] >= memmap_min_px else None)
     try:
         return _estimate_capture(capture, out_dir, fmt, tile_rows, preview,
-                                 None if scratch is None else Path(scratch.name), model, maps, half)
+                                 None if scratch is None else Path(scratch.name), model, maps, half, reference)
     finally:
         if scratch is not None:
             scratch.cleanup()
@@ -822,7 +871,7 @@ def estimate_capture(capture: Capture, out_dir: str | Path, fmt: str = "exr", ti
 
 def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows: int | None, preview: str,
                       scratch: Path | None, model: str = "dipole-jensen", select: Any = None,
-                      half: bool = False) -> dict[str, Any]:
+                      half: bool = False, reference: Mapping[str, Any] | None = None) -> dict[str, Any]:
     from estimation.diffusion import compare_estimates, diffusion_seed, estimate_sphere, sphere_geometry
     from estimation.gradients import compute_maps
 
@@ -850,13 +899,17 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
         center, radius = np.zeros(3), 0.0
     scale, scale_prov = _albedo_scale(cap, leds, n_ref)
     exposure = {f.key: f.exposure_s for f in cap.frames}
-    try:
-        maps = compute_maps(cap.images, albedo_scale=scale, leds=leds, ideal=cap.leds.ideal, eta=rad.eta,
+
+    def folder_maps(images: Mapping[FrameKey, Any], out: Path | None = None) -> Any:
+        """The folder's map computation (also applied to the reference renders, converted to frame units)."""
+        return compute_maps(images, albedo_scale=scale, leds=leds, ideal=cap.leds.ideal, eta=rad.eta,
                             view_dirs=view, tile_rows=tile_rows or 256, white_level=1.0,
                             saturation=rad.saturation_level, dark_threshold=rad.dark_level, object_mask=obj,
                             geometry_normals=geo_normals, reference_normal=n_ref, surface_center_mm=center,
-                            surface_radius_mm=radius, exposure_s=exposure, consistency=False,
-                            out_dir=None if scratch is None else scratch / "gradients")
+                            surface_radius_mm=radius, exposure_s=exposure, consistency=False, out_dir=out)
+
+    try:
+        maps = folder_maps(cap.images, None if scratch is None else scratch / "gradients")
     except ValueError as exc:
         raise CaptureError(f"{cap.file}: gradient maps failed: {exc}") from exc
     t_maps = time.perf_counter() - t0
@@ -864,6 +917,7 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
     notes = list(cap.notes)
     diffusion = None
     diff_summary: dict[str, Any]
+    ref_summary: dict[str, Any] | None = None
     if cap.geometry is not None:
         assert normals is not None
         method = "sphere" if model == "dipole-jensen" else "small_blur"
@@ -872,6 +926,11 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
                               method=method, model=model)
         diffusion = est.maps
         diff_summary = {"estimator": f"grounded {method} (docs/gradients.md sec. 5)", **est.summary.as_dict()}
+        if reference is not None:
+            ref_summary = _reference_summary(cap, reference, leds, scale, rad.eta, n_ref, normals, obj, maps,
+                                             folder_maps, tile_rows or 256)
+            notes.append("diffusion_reference_corrected: the sphere summary corrected by Monte Carlo reference "
+                         "renders; the per-pixel maps are uncorrected")
     else:
         diff_summary = {"estimator": "grounded", "status": ["unknown"] * 3,
                         "reason": "no geometry ([object] shape = \"sphere\" with center_mm, radius_mm): a region "
@@ -901,6 +960,8 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
                  "specular": maps.specular_normals is not None},
         "diffusion": diff_summary, "seed": seed_summary, "notes": notes,
     }
+    if ref_summary is not None:
+        summary["diffusion_reference_corrected"] = ref_summary
     prov: dict[str, Any] = {
         "name": cap.name,
         "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
@@ -922,7 +983,8 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
                       if cap.geometry else {})},
         "seed": None if cap.seed is None else {"k_mm": cap.seed.k_mm, **cap.seed.provenance},
         "parameters": {"format": fmt, "tile_rows": tile_rows or 256, "model": model,
-                       "maps": "all" if select is None else list(select), "half": bool(half)},
+                       "maps": "all" if select is None else list(select), "half": bool(half),
+                       "reference": None if ref_summary is None else ref_summary["reference"]},
         "gradients": maps.provenance,
         "diffusion": None if diffusion is None else _strip_gradients(diffusion.provenance),
     }
@@ -961,6 +1023,19 @@ def format_summary(s: Mapping[str, Any]) -> str:
         lines.append(f"{ch:<3}{m['known_pixels'][c]:>10}{_fmt(m['albedo_median'][c]):>10}"
                      f"{_fmt(m['diffuse_length_median'][c]):>10}{_fmt(D):>11}{_fmt(ss):>15}{_fmt(sa):>12}  "
                      f"{d['status'][c]}")
+    r = s.get("diffusion_reference_corrected")
+    if r:
+        ref = r["reference"]
+        lines.append(f"reference-corrected sphere summary ({r['iterations']} Monte Carlo renders at {ref['spp']} spp, "
+                     f"seed {ref['seed']}, {r['seconds']:.1f} s; {r['message']}); per-pixel maps uncorrected:")
+        lines.append(f"{'ch':<3}{'D [mm]':>11}{'95 % interval':>22}{'sigma_s_prime':>15}{'sigma_a':>12}"
+                     f"{'kappa_alb':>11}{'kappa_blur':>11}{'D uncorr.':>11}")
+        for c, ch in enumerate("RGB"):
+            lo, hi = r["D_mm"]["interval"][c]
+            lines.append(f"{ch:<3}{_fmt(r['D_mm']['value'][c]):>11}{'[' + _fmt(lo) + ', ' + _fmt(hi) + ']':>22}"
+                         f"{_fmt(r['sigma_s_prime_per_mm']['value'][c]):>15}"
+                         f"{_fmt(r['sigma_a_per_mm']['value'][c]):>12}{_fmt(r['kappa_albedo'][c], '.3f'):>11}"
+                         f"{_fmt(r['kappa_blur'][c], '.3g'):>11}{_fmt(r['uncorrected']['D_mm'][c]):>11}")
     if s.get("seed"):
         lines.append("seed D [mm] (relative, k calibrated elsewhere): "
                      + " ".join(_fmt(v) for v in s["seed"]["D_mm_median"]))
@@ -970,13 +1045,25 @@ def format_summary(s: Mapping[str, Any]) -> str:
 
 
 def run_cli(args: Any) -> int:
-    """``rig estimate gradients FOLDER [--out DIR] [--format exr|tiff] [--tile-rows N] [--model M] [--json]``."""
+    """``rig estimate gradients FOLDER [--out DIR] [--format exr|tiff] [--tile-rows N] [--model M] [--json]
+    [--reference [--reference-spp N] [--reference-iterations K] [--reference-seed S]]``."""
     folder = Path(args.folder)
     out = Path(args.out) if getattr(args, "out", None) else folder / "maps"
     tile_rows = getattr(args, "tile_rows", None)
     if tile_rows is not None and tile_rows < 1:
         raise ConfigError("--tile-rows", "tile_rows", "an integer >= 1", tile_rows)
+    reference: dict[str, Any] | None = None
+    ref_opts = {k: getattr(args, f"reference_{k}", None) for k in ("spp", "iterations", "seed")}
+    if getattr(args, "reference", False):
+        reference = ref_opts
+    else:
+        given = [k for k, v in ref_opts.items() if v is not None]
+        if given:
+            raise ConfigError(f"--reference-{given[0]}", given[0], "only together with --reference",
+                              ref_opts[given[0]])
     cap = load_capture(folder)
+    if reference is not None:
+        _check_reference(cap, reference)      # before the maps: a missing sphere is a usage error, not a failure
     from .maps_io import select_maps
 
     try:
@@ -985,7 +1072,7 @@ def run_cli(args: Any) -> int:
         raise ConfigError("--maps", "maps", str(exc), getattr(args, "maps", None)) from None
     summary = estimate_capture(cap, out, getattr(args, "format", "exr") or "exr", tile_rows,
                                model=getattr(args, "model", None) or "dipole-jensen", maps=sel,
-                               half=bool(getattr(args, "half", False)))
+                               half=bool(getattr(args, "half", False)), reference=reference)
     if getattr(args, "json", False):
         print(json.dumps(summary, indent=2))
     else:

@@ -378,6 +378,16 @@ def build_parser() -> argparse.ArgumentParser:
                         "others follow (docs/capture-folder.md)")
     q.add_argument("--half", action="store_true",
                    help="write normals and albedos as EXR HALF (float16); the diffusion maps stay float32")
+    q.add_argument("--reference", action="store_true",
+                   help="known sphere only: also correct the sphere summary by Monte Carlo renders of the same "
+                        "capture (one render of every pattern per iteration; the per-pixel maps stay "
+                        "uncorrected; docs/capture-folder.md)")
+    q.add_argument("--reference-spp", type=_int_at_least(2), default=None, metavar="N",
+                   help="--reference: paths per pixel of each reference render (default 64)")
+    q.add_argument("--reference-iterations", type=_int_at_least(1), default=None, metavar="K",
+                   help="--reference: at most K reference renders (default 4)")
+    q.add_argument("--reference-seed", type=_int_at_least(0), default=None, metavar="S",
+                   help="--reference: seed of every reference render (default 1)")
     q.add_argument("--json", action="store_true", help="print the summary as JSON instead of a table")
     p.set_defaults(func=_cmd_estimate)
 

@@ -95,7 +95,8 @@ class GradientsMonteCarloReference:
     normals and ``erode_px``, and the summary's median albedo / shortening with their intervals. Use
     :meth:`observables` on the observed capture too, so that both go through identical code.
     ``mc``: further :class:`simulators.mc_capture.MCSettings` (its ``spp`` and ``seed`` are replaced).
-    :attr:`renders` keeps each render's seconds and parameters.
+    :attr:`renders` keeps each render's seconds and parameters. ``render_mode``: "mc" (default; the reference) or
+    "fast" (the dipole renderer, no Monte Carlo error: for checking units and map plumbing, not a reference).
     """
 
     camera: Any
@@ -113,10 +114,13 @@ class GradientsMonteCarloReference:
     tessellation: int = 3
     mc: Any = None
     renders: list[dict[str, Any]] = field(default_factory=list)
+    render_mode: str = "mc"
 
     def __post_init__(self) -> None:
         if self.spp < 2:
             raise ValueError("spp must be >= 2 (the Monte Carlo standard error needs two paths per pixel)")
+        if self.render_mode not in ("mc", "fast"):
+            raise ValueError(f"render_mode must be 'mc' or 'fast'; got {self.render_mode!r}")
         if not self.radius_mm > 0:
             raise ValueError(f"radius_mm must be > 0; got {self.radius_mm!r}")
         if not self.patterns:
@@ -156,7 +160,7 @@ class GradientsMonteCarloReference:
                            float(eta), tessellation=int(self.tessellation))
         return render_gradient_capture(obj, self.camera, self.led_positions_mm, self.led_intensity, self.patterns,
                                        polarizations=self.polarizations, exposure_s=self.exposure_s,
-                                       sensor=self.sensor, noise=False, render_mode="mc", mc=settings)
+                                       sensor=self.sensor, noise=False, render_mode=self.render_mode, mc=settings)
 
     def __call__(self, sigma_s_prime_per_mm: Any, sigma_a_per_mm: Any, eta: float, seed: int) -> SphereObservables:
         import time

@@ -570,3 +570,167 @@ def test_unknown_model_is_rejected(small_capture, capsys) -> None:
 
     with pytest.raises(SystemExit):
         main(["estimate", "gradients", str(small_capture), "--model", "dipole-foo"])
+
+
+# ---------------------------------------------------------------------------------------------------- --reference
+# A capture folder whose frames are a simulated gradient capture (simulators.scene.render_gradient_capture) of a 10 mm
+# skin1 sphere (science.md sec. 2, eta 1.3): 362 LEDs at 1 m (rig.geometry.led_layout), full + x, y, z
+# cross-polarized, 32 x 32 px pinhole at 400 mm, a 14-bit sensor's expected values (no noise) written as EXR with
+# value_per_radiance_per_s = gain / (white - black).
+SKIN1 = (np.array([0.74, 0.88, 1.01]), np.array([0.032, 0.17, 0.48]))
+SIM_GAIN, SIM_BLACK, SIM_WHITE, SIM_EXPOSURE = 4.5e7, 512, 16383, 0.02
+SIM_PX = 32
+SIM_SPP = 128
+SIM_FRAME_SEED = 0       # the observation's Monte Carlo realisation
+SIM_REF_SEED = 100       # the reference's (independent of the observation's, as for a real capture)
+
+
+def write_simulated_capture(folder: Path, render_mode: str, *, seed: int = SIM_FRAME_SEED, spp: int = SIM_SPP,
+                            geometry: bool = True, camera: str = "pinhole") -> Path:
+    from estimation.camera import PinholeCamera
+    from rig.geometry import led_layout
+    from simulators.camera import SensorModel
+    from simulators.mc_capture import MCSettings
+    from simulators.scene import SphereObject, render_gradient_capture
+
+    pos, _ = led_layout(6, 1000.0, -60.0)
+    inten = np.full((len(pos), 3), 1000.0)
+    rig = LedRig.from_positions(pos, inten)
+    patterns = {p: rig.pattern_values(p) for p in ("full", "x", "y", "z")}   # what the folder's LED model drives
+    if camera == "pinhole":
+        cam = PinholeCamera.looking_at(width_px=SIM_PX, height_px=SIM_PX, fx_px=SIM_PX * 20.0,
+                                       position_mm=(0.0, -400.0, 0.0), target_mm=(0.0, 0.0, 0.0))
+        cam_toml = ['model = "pinhole"', f"fx_px = {cam.fx_px}", "position_mm = [0.0, -400.0, 0.0]",
+                    "look_at_mm = [0.0, 0.0, 0.0]"]
+    else:   # the same field of view, orthographic (the simulator needs view_directions: rig.folder_reference)
+        from rig.folder_reference import renderable_camera
+        cam = renderable_camera(OrthographicCamera.looking_at(width_px=SIM_PX, height_px=SIM_PX,
+                                                              pixel_size_mm=20.0 / SIM_PX, direction=(0.0, 1.0, 0.0)))
+        cam_toml = ['model = "orthographic"', f"pixel_size_mm = {20.0 / SIM_PX!r}", "look_direction = [0.0, 1.0, 0.0]"]
+    sensor = SensorModel(gain_dn_per_unit=SIM_GAIN, black_level_dn=SIM_BLACK, white_level_dn=SIM_WHITE,
+                         read_noise_dn=2.0, electrons_per_dn=1.5)
+    obj = SphereObject((0.0, 0.0, 0.0), RADIUS, tuple(SKIN1[0]), tuple(SKIN1[1]), ETA, tessellation=3)
+    cap = render_gradient_capture(obj, cam, pos, inten, patterns, polarizations=("cross",), exposure_s=SIM_EXPOSURE,
+                                  sensor=sensor, noise=False, render_mode=render_mode,
+                                  mc=MCSettings(spp=spp, seed=seed))
+    (folder / "frames").mkdir(parents=True)
+    lines = ['format = "sssrig-capture"', "format_version = 1", f'name = "skin1-{render_mode}"', ""]
+    for (p, pol), img in cap.frames.items():
+        write_exr(folder / f"frames/{p}_{pol}.exr", img)
+        lines += ["[[frames]]", f'file = "frames/{p}_{pol}.exr"', f'pattern = "{p}"', f'polarization = "{pol}"',
+                  f"exposure_s = {SIM_EXPOSURE}", ""]
+    np.save(folder / "leds.npy", np.hstack([pos, inten]))
+    lines += ["[leds]", 'file = "leds.npy"', "", "[camera]", *cam_toml, "", "[radiometry]", f"eta = {ETA}",
+              f"value_per_radiance_per_s = {SIM_GAIN / (SIM_WHITE - SIM_BLACK)!r}", ""]
+    if geometry:
+        lines += ["[object]", 'shape = "sphere"', "center_mm = [0.0, 0.0, 0.0]", f"radius_mm = {RADIUS}", ""]
+    (folder / "capture.toml").write_text("\n".join(lines))
+    return folder
+
+
+def _rel_err(values, truth) -> np.ndarray:
+    return np.asarray(values, dtype=float) / np.asarray(truth, dtype=float) - 1.0
+
+
+@pytest.mark.parametrize("camera", ["pinhole", "orthographic"])
+def test_reference_units_fast_render_of_the_folder_sphere_is_a_fixed_point(tmp_path, camera) -> None:
+    """Units and plumbing of the reference, without Monte Carlo noise: frames written from a FAST render, reference
+    renders FAST too (the same renderer). The reference capture is rendered in simulator units and converted to
+    the folder's frame units (value_per_radiance_per_s x exposure) before the folder's own compute_maps, so at the
+    truth its observables are the folder's frames' observables and the truth is the correction's fixed point:
+    measured corrected sigma_s', sigma_a, D within 4e-4 of the truth (plain sphere inversion: D +0.4..+0.9 %, the
+    fast renderer's patch quadrature), kappa_albedo 0.9994-1.0002. A wrong scale (e.g. a missing exposure or
+    value_per_radiance) would shift the fixed point by that factor in the albedo. Pinhole and orthographic
+    (rendered through rig.folder_reference.renderable_camera) cameras."""
+    from rig.capture_folder import estimate_capture
+    from rig.folder_reference import implied_value_per_radiance_per_s
+
+    folder = write_simulated_capture(tmp_path / "fast", "fast", camera=camera)
+    cap = load_capture(folder)
+    assert cap.camera_spec["model"] == camera
+    s = estimate_capture(cap, tmp_path / "maps", reference={"spp": 2, "iterations": 3, "seed": 0,
+                                                            "render_mode": "fast"})
+    ssp, sa = SKIN1
+    r = s["diffusion_reference_corrected"]
+    assert r["reference"]["renderer"].endswith('(render_mode "fast", simulators.mc_capture)')
+    np.testing.assert_allclose(r["reference"]["value_per_radiance_per_s"], SIM_GAIN / (SIM_WHITE - SIM_BLACK),
+                               rtol=1e-12)
+    leds = cap.leds.rig(cap.gradient_patterns)
+    from rig.capture_folder import _reference_normal
+    np.testing.assert_allclose(implied_value_per_radiance_per_s(s["albedo_scale"], leds, ETA,
+                                                                _reference_normal(cap.camera)),
+                               SIM_GAIN / (SIM_WHITE - SIM_BLACK), rtol=1e-12)
+    np.testing.assert_allclose(r["uncorrected"]["D_mm"], s["diffusion"]["D_mm"]["value"], rtol=1e-9)
+    np.testing.assert_allclose(r["sigma_s_prime_per_mm"]["value"], ssp, rtol=2e-3)
+    np.testing.assert_allclose(r["sigma_a_per_mm"]["value"], sa, rtol=2e-3)
+    np.testing.assert_allclose(r["D_mm"]["value"], 1 / (3 * (ssp + sa)), rtol=2e-3)
+    np.testing.assert_allclose(r["kappa_albedo"], 1.0, atol=2e-3)
+
+
+# corrected D / true - 1 allowed for red / green (measured: module docstring of the test below)
+REF_D_TOL_RG = 0.08
+
+
+def test_reference_corrects_a_monte_carlo_skin1_sphere_end_to_end(tmp_path, capsys) -> None:
+    """``rig estimate gradients FOLDER --reference`` on Monte Carlo frames of a 10 mm skin1 sphere (32 x 32 px,
+    128 spp, frame seed 0; reference seed 100, 128 spp, at most 4 renders).
+
+    Measured (frame seeds 0-3, reference seed = frame seed + 100; corrected D / true - 1, R / G / B):
+    plain +23..+25 / +107..+110 / +210..+240 %; corrected +0.2 / -1.4 / -9.1 % (seed 0), +0.7 / +4.6 / +17.7 %
+    (seed 1), +0.5 / -4.3 / +9.0 % (seed 2), +1.2 / +0.2 / +1.2 % (seed 3); none met the 2 % stop rule within 4
+    renders (last change 9-13 %, the blue channel). Red and green asserted within 8 % (~1.7 x the largest
+    measured), blue (Monte-Carlo-noise-limited blur, kappa_blur 8-12) within 35 % as in
+    tests/simulators/test_mc_frames_gradients.py. Also: the summary keeps the uncorrected diffusion beside the
+    corrected one and says the per-pixel maps are uncorrected; the table output shows both."""
+    folder = write_simulated_capture(tmp_path / "mc", "mc")
+    s = run_json(folder, capsys, "--reference", "--reference-spp", str(SIM_SPP), "--reference-seed",
+                 str(SIM_REF_SEED))
+    ssp, sa = SKIN1
+    D_true = 1 / (3 * (ssp + sa))
+    r = s["diffusion_reference_corrected"]
+    plain = _rel_err(s["diffusion"]["D_mm"]["value"], D_true)
+    corr = _rel_err(r["D_mm"]["value"], D_true)
+    print(f"\nskin1 sphere, capture folder --reference ({r['iterations']} renders, {r['seconds']:.1f} s, "
+          f"renders {np.round(r['reference']['render_seconds'], 2).tolist()} s; {r['message']})\n"
+          f"  D plain {np.round(plain, 3)} -> corrected {np.round(corr, 3)}; sigma_s' "
+          f"{np.round(_rel_err(r['sigma_s_prime_per_mm']['value'], ssp), 3)}, sigma_a "
+          f"{np.round(_rel_err(r['sigma_a_per_mm']['value'], sa), 3)}; kappa_albedo "
+          f"{np.round(r['kappa_albedo'], 3)}, kappa_blur {np.round(r['kappa_blur'], 2)}")
+    assert r["reference"]["spp"] == SIM_SPP and r["reference"]["seed"] == SIM_REF_SEED
+    assert 1 <= r["iterations"] <= 4 and len(r["steps"]) == r["iterations"]
+    assert "uncorrected" in r["applies_to"] and any("per-pixel maps are uncorrected" in n for n in s["notes"])
+    np.testing.assert_allclose(r["uncorrected"]["D_mm"], s["diffusion"]["D_mm"]["value"], rtol=1e-9)
+    assert np.all(plain[:2] > 0.15)                               # the bias the reference removes
+    assert np.all(np.abs(corr[:2]) <= REF_D_TOL_RG), corr
+    assert abs(corr[2]) <= 0.35, corr
+    assert np.all(np.array(r["kappa_albedo"]) > 1.04) and not any(r["censored"])
+    lo, hi = np.asarray(r["D_mm"]["interval"]).T
+    assert np.all(lo < r["D_mm"]["value"]) and np.all(np.asarray(r["D_mm"]["value"]) < hi)
+    side = read_maps(folder / "maps").sidecar
+    assert side["summary"]["diffusion_reference_corrected"]["D_mm"] == r["D_mm"]
+    assert side["provenance"]["parameters"]["reference"]["spp"] == SIM_SPP
+
+
+def test_reference_needs_a_sphere_and_is_refused_clearly(tmp_path, capsys) -> None:
+    """--reference without [object] shape = "sphere": exit 2 naming the file, the key and why (before any maps);
+    --reference-spp without --reference is refused too."""
+    folder = write_simulated_capture(tmp_path / "nosphere", "fast", geometry=False)
+    rc = main(["estimate", "gradients", str(folder), "--reference"])
+    err = capsys.readouterr().err
+    assert rc == 2
+    assert str(folder / "capture.toml") in err and "field 'object.shape'" in err
+    assert "--reference renders the known sphere" in err
+    assert not (folder / "maps").exists()
+    rc = main(["estimate", "gradients", str(folder), "--reference-spp", "16"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "--reference-spp" in err and "only together with --reference" in err
+
+
+def test_reference_with_ideal_gradients_is_refused(tmp_path, capsys) -> None:
+    folder = tmp_path / "ortho"
+    _ideal_ortho_capture(folder)
+    p = folder / "capture.toml"
+    p.write_text(p.read_text() + 'shape = "sphere"\ncenter_mm = [0.0, 0.0, 0.0]\nradius_mm = 6.0\n')
+    rc = main(["estimate", "gradients", str(folder), "--reference"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "field 'leds.ideal'" in err and "--reference renders the capture's LEDs" in err
