@@ -23,21 +23,60 @@ Carlo renderings in the same role):
    (inverse-variance weights: the edge deficit varies over millimetres, the Monte Carlo noise from patch to
    patch);
 3. refit the fast model to the corrected observations l / kappa_i (their standard error grows by kappa's):
-   F(p_i). The next render point is p_i + lambda (F(p_i) - p_i) in log parameters, lambda = 1 per parameter,
-   halved (down to 1/4) whenever that parameter's step reverses sign: the map overshoots on cubes (slope about
-   -0.4 to -1 in sigma_s', a 2-cycle without relaxation).
+   F(p_i). The next render point is p_i + lambda (F(p_i) - p_i) in log parameters (a relaxed Picard step),
+   lambda = 1 per parameter, halved (down to 1/4) whenever that parameter's step reverses sign: the map
+   overshoots on cubes (slope about -0.4 to -1 in sigma_s', a 2-cycle without relaxation).
 
-Stop when every parameter's step |F(p_i) - p_i| is below ``rel_tol`` or below a quarter of the half-width of its
-own 95 % interval (the reference noise then moves the estimate less than the data's noise does), or after
-``max_iterations`` renders; the result is the last refit. Every render uses the same ``seed`` (common random
-numbers, a sample-average approximation): the reference is then one fixed realisation, the iteration converges
-to its fixed point instead of wandering with fresh noise, and that realisation's noise enters the refit's
-intervals through the corrected standard errors.
+Stop when the last refit is close to the fixed point in every parameter: its estimated distance, |G| |1 + s| / |s|
+for the step G = F(p_i) - p_i and the secant slope s = (G_i - G_{i-1}) / (p_i - p_{i-1}) of G along the path
+(|G| after the first render; the error estimate of Aitken's delta-squared process, s clipped to [-2, -0.1]), is
+below ``rel_tol`` or below a quarter of the refit's standard error (its 95 % half-width / 1.96; in log for a
+two-sided interval, in sigma_a itself for a one-sided profile interval [0, hi], whose log-width is infinite:
+such a parameter used to count as settled at once) — or after ``max_iterations`` renders; the result is the last
+refit. The former rule compared |G| itself with a quarter of the half-width; on a map of slope 0.6 the refit is
+then still 1.5 steps from the fixed point, and it stopped a 4096-spp skin1 pyramid (below) at +16 % whose
+fixed point is +4 %. Every render uses the same ``seed`` (common random numbers, a sample-average
+approximation): the reference is then one fixed realisation, the iteration converges to its fixed point instead
+of wandering with fresh noise, and that realisation's noise enters the refit's intervals through the corrected
+standard errors.
 
-If the observations are Q(p_true) plus noise, p_true is a fixed point: kappa(p_true) makes the fast model exact
-there. Measured on the 20 mm marble-R cube at 128 x 128 px (``benchmarks/mc_single_image.py``, 128-spp
-references of ~16 s each): sigma_s' -36.8 % -> +18.8 % -> -1.5 % -> 0.0 % -> +1.0 %, sigma_a -50 % -> -4.2 %
-after 4 renders.
+If the observations are Q(p_true) plus noise, p_true is a fixed point up to that noise: kappa(p_true) makes the
+fast model exact there. Measured on the 20 mm marble-R cube at 128 x 128 px (``benchmarks/mc_single_image.py``,
+128-spp references of 17-28 s each on 2 shared cores): sigma_s' -36.8 % -> +18.8 % -> -1.5 % -> 0.0 %, sigma_a
+-50 % -> -23 % -> -8.7 % -> -5.5 %, settled after 3 renders (secant slopes of G of about -1.2 in sigma_s', where the map overshoots,
+and -0.8 in sigma_a put the last refit ~1 % from the fixed point); the former stopping rule rendered once more
+(+1.0 %, -4.2 %).
+
+How far the noise moves the fixed point depends on the scene. Linearised, F(p) - p = (M'^+ Q') (p* - p) +
+noise, with M' and Q' the sensitivities of the fast model and of the reference to log p: the slope of the map is
+dF/dp = I - M'^+ Q', and the fixed point is off by (M'^+ Q')^-1 times the refit's noise. Where the reference
+responds to a parameter as the fast model does, that factor is 1; where it responds less, the iteration is slow
+and the fixed point noisy. Measured on the 14 mm skin1-R pyramid under a sky map (64 x 64 px,
+``tests/simulators/test_mc_frames_single_image.py``; forward differences of 8 % in log p at the truth, 4096-spp
+frame, 1024-spp references): dF/dp = [[1.0, -0.4], [1.0, -0.4]] in (log sigma_s', log sigma_a) (entries 0.97-1.06
+and -0.31 to -0.42 over 3 frame and 2 reference seeds) —
+the refits move along the ridge of nearly constant albedo, where the map's slope is 0.6, and the fixed-point
+error in log sigma_s' is ~3.5 G_s - G_a ~ 2 G_s for the refit's error G at the truth (G_a ~ 1.5 G_s along the
+ridge), more once it is nonlinear. The standard deviation of G_s at the truth is ~0.05 from a 256-spp frame's
+noise (3 frame seeds) and 0.08 from a 128-spp reference's (8 reference seeds; 0.03 at 1024 spp). Fixed points
+reached (sigma_s' error, frame seeds 1, 2, 3; steps of seed 1):
+
+| frame / reference spp | sigma_s' at the end | renders | seed 1 path |
+|---|---|---|---|
+| 256 / 128 | -42, -35, -56 % | 8, 8 (not settled), 7 | +24, +7.9, -6.0, -16, -26, -33, -37, -41, -42 % |
+| 256 / 1024 | -1.6, +13.5, -29 % (still drifting) | 5, 4, 8 | +24, +21, +11, +4.0, +0.4, -1.6 % |
+| 4096 / 1024 | +3.5, 0.0, +4.7 % | 6, 5, 5 | +30, +26, +16, +11, +6.3, +3.9, +3.5 % |
+
+So the iteration converges there; at 256-spp frames the scene does not hold sigma_s' to 10 %. The refit's 95 %
+interval (0.26-1.27 of the truth at the end of the 256/128 run, seed 1) is computed from M', not Q', and is too narrow by
+the factor above along the ridge. Also measured there and rejected: an Anderson / multisecant step (type II,
+memory 2, capped at the larger of the Picard step and the refit's half-width) extrapolated through the
+non-identified sigma_a of a marble pyramid under a point light to +98 % and ended 17-24 % off (3 of 3 seeds; the
+Picard iteration: within 4 %); a per-parameter secant step diverged on the 4096-spp skin1 pyramid (-75 %), whose
+first refit moves sigma_a by +22 points and sigma_s' by -3. A smoothing radius of kappa of 3 patch spacings
+instead of 1.5 shifts G_s at the truth by +11 points (it blurs the edge deficit); equal instead of inverse-variance
+smoothing weights, dropping kappa's variance from the refit's noise or a second-order (Jensen) correction of
+1 / kappa move it by less than 1.5 points.
 
 What this is not: a remedy for an unknown or wrong geometry (the reference uses the geometry the estimator is
 given), nor free — each iteration is one full render. The result reports the fast model's bias *in this
@@ -52,7 +91,7 @@ The reference renderer is any callable ``reference(sigma_s_prime_per_mm (C,), si
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 import numpy as np
@@ -92,6 +131,9 @@ class ReferenceStep:
     kappa_p95: list[float]
     kappa_rel_stderr_median: list[float]
     change: float  # max relative change of the parameters in this step
+    # the point the reference was rendered at in this step (empty for step 0, the base fit)
+    rendered_sigma_s_prime_per_mm: list[float] = field(default_factory=list)
+    rendered_sigma_a_per_mm: list[float] = field(default_factory=list)
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -143,18 +185,69 @@ def _smooth(op: csr_matrix | None, kappa: Array, kappa_var: Array) -> tuple[Arra
     return mean, var
 
 
-def _settled(step: Array, channels: NDArray[np.bool_], fit: SingleImageResult, rel_tol: float) -> bool:
-    """True when every parameter's last step (log) is below rel_tol or below a quarter of its own 95 % interval's
-    half-width (log) — the reference noise then moves the estimate less than the data's noise does."""
-    tol = np.full(step.shape, np.log1p(rel_tol))
+#: the iteration stops when the refit's estimated distance to the fixed point is below this fraction of the
+#: refit's own standard error (the 95 % half-width / 1.96) in every parameter, or below ``rel_tol``
+SETTLE_SD_FRACTION: float = 0.25
+_Z95 = 1.959963984540054
+
+
+def _settled(render_log: Array, new_log: Array, channels: NDArray[np.bool_], fit: SingleImageResult,
+             rel_tol: float, remaining: Array | None = None) -> bool:
+    """True when every parameter's refit is close to the fixed point against the refit's own uncertainty, so the
+    iteration error is small beside the data's noise.
+
+    ``render_log`` and ``new_log`` are log (sigma_s', sigma_a), shape (2, C), of the render point p and the refit
+    F(p). ``remaining`` (2, C), default 1, is the refit's estimated distance to the fixed point per unit step:
+    |1 + s| / |s| for a secant slope s of G = F - p (:func:`_secant_slope`; a map of slope 0.6 leaves 1.5 steps
+    to go, one of slope -0.5 a third of one). That distance counts as settled when it is below ``rel_tol``
+    (relative) or below :data:`SETTLE_SD_FRACTION` of the parameter's standard error, taken from its 95 %
+    interval:
+
+    - a two-sided interval (lo > 0): the distance in log against 0.5 log(hi / lo) / 1.96;
+    - a one-sided interval [0, hi] (sigma_a's profile interval when the data cannot tell sigma_a from 0): the
+      distance in sigma_a itself against (hi / 2) / 1.96. Its log-width is infinite — under the former rule such
+      a parameter counted as settled at once whatever it did — and the Wald interval in log sigma_a is no
+      remedy: there the likelihood is flat towards 0 and its curvature at the estimate (possibly at the floor,
+      where any log step is tiny against it) says nothing about the interval. The profile interval is a
+      statement on the linear scale, and on that scale its width hi is finite;
+    - no finite interval: ``rel_tol`` only.
+    """
+    factor = np.ones_like(render_log) if remaining is None else np.asarray(remaining, dtype=np.float64)
+    dist = np.abs(new_log - render_log) * factor
+    ok = dist <= np.log1p(rel_tol)
+    frac = SETTLE_SD_FRACTION / _Z95
     for row, ci in enumerate((fit.sigma_s_prime_ci_per_mm, fit.sigma_a_ci_per_mm)):
         if ci is None:
             continue
         c = np.asarray(ci, dtype=np.float64).reshape(-1, 2)
+        lo, hi = c[:, 0], c[:, 1]
+        two_sided = np.isfinite(lo) & np.isfinite(hi) & (lo > 0) & (hi > lo)
+        one_sided = np.isfinite(hi) & (hi > 0) & ~(lo > 0)
         with np.errstate(divide="ignore", invalid="ignore"):
-            half = 0.5 * np.log(c[:, 1] / c[:, 0])
-        tol[row] = np.maximum(tol[row], np.where(np.isfinite(half), 0.25 * half, np.inf))
-    return bool(np.all(np.abs(step[:, channels]) <= tol[:, channels]))
+            half_log = 0.5 * np.log(hi / lo)
+            dist_lin = np.abs(np.exp(new_log[row]) - np.exp(render_log[row])) * factor[row]
+        ok[row] |= (two_sided & (dist[row] <= frac * half_log)) | (one_sided & (dist_lin <= frac * 0.5 * hi))
+    return bool(np.all(ok[:, channels]))
+
+
+#: bounds of the secant slope s = dG/dp of G(p) = F(p) - p (log parameters), i.e. of the map's slope 1 + s: from
+#: -1 (a 2-cycle) to 0.9 (a slow drift, which leaves up to 9 steps to go)
+SECANT_SLOPE_BOUNDS: tuple[float, float] = (-2.0, -0.1)
+
+
+def _secant_slope(x_prev: Array, g_prev: Array, x: Array, g: Array) -> Array:
+    """Per-parameter secant slope s = (G_k - G_{k-1}) / (x_k - x_{k-1}) of G(x) = F(x) - x in log parameters,
+    clipped to :data:`SECANT_SLOPE_BOUNDS`; NaN where the two render points coincide.
+
+    1 + s is the slope of the map F along the path, and the fixed point lies at x_k - G_k / s, so the refit
+    F(x_k) = x_k + G_k is |G_k| |1 + s| / |s| from it (the error estimate behind Aitken's delta-squared process;
+    Ortega & Rheinboldt 2000, "Iterative solution of nonlinear equations in several variables", SIAM, sec. 12.1
+    on contraction-mapping error bounds)."""
+    dx = x - x_prev
+    with np.errstate(divide="ignore", invalid="ignore"):
+        slope = (g - g_prev) / dx
+    slope = np.where(np.isfinite(slope), slope, np.nan)
+    return np.where(np.abs(dx) > 1e-9, np.clip(slope, *SECANT_SLOPE_BOUNDS), np.nan)
 
 
 def _finite_params(r: SingleImageResult) -> tuple[Array, Array, NDArray[np.bool_]]:
@@ -179,8 +272,9 @@ def estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, ligh
     :func:`estimation.single_image.estimate_single_image` (``method`` defaults to "direct"). ``reference`` is
     called at most ``max_iterations`` times, always with ``seed`` (common random numbers; the module docstring);
     each refit also starts from the point just rendered (``start_per_mm``). Returns the last fit, with ``model``
-    set to ``"<base_model>+reference"`` and ``extra["reference"]`` holding every step (parameters, seconds,
-    the correction's median / 5th / 95th percentile), ``extra["converged"]`` and ``extra["model_bias"]``, the base
+    set to ``"<base_model>+reference"`` and ``extra["reference"]`` holding every step (the refit's parameters, the
+    point rendered, seconds, the correction's median / 5th / 95th percentile), ``extra["converged"]`` (the last
+    refit was estimated close to the fixed point: :func:`_settled`) and ``extra["model_bias"]``, the base
     model's radiance over the reference's at the final parameters. A failed base fit is returned as it is
     (falsy, its message prefixed); a reference that returns no usable value raises ``ValueError`` naming it.
     """
@@ -213,6 +307,7 @@ def estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, ligh
     render_log: Array | None = None  # log (sigma_s', sigma_a) (2, C) of the next render
     last_step: Array | None = None
     relax = np.ones((2, n_ch))
+    prev: tuple[Array, Array] | None = None  # last render point and G = F - x there (log, (2, C))
     for it in range(1, max_iterations + 1):
         ssp, sa, ok_ch = _finite_params(result)
         if not ok_ch.any():
@@ -252,20 +347,27 @@ def estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, ligh
         both = ok_ch & ok_n
         step = np.log(np.stack([ssp_n, sa_n])) - logp  # F(p) - p in log parameters
         change = float(np.expm1(np.max(np.abs(step[:, both]), initial=0.0)))
+        g_step = np.where(both[None, :], step, 0.0)
         # relaxation against the overshoot of the map p -> F(p) (measured slope -0.4 to -1 in sigma_s' on cubes:
         # a 2-cycle without it): halve a parameter's step factor whenever its step reverses sign, floor 1/4
         if last_step is not None:
             relax = np.where(np.sign(step) * np.sign(last_step) < 0, np.maximum(relax * 0.5, 0.25), relax)
         last_step = step
-        render_log = logp + relax * np.where(both[None, :], step, 0.0)
+        render_log = logp + relax * g_step
+        # slope of G along the path, per parameter: the refit F(p) is |G| |1 + s| / |s| from the fixed point
+        # (1 x |G| while unknown, i.e. a map slope of 1/2 assumed after the first render)
+        slope = np.full((2, n_ch), np.nan) if prev is None else _secant_slope(prev[0], prev[1], logp, g_step)
+        remaining = np.where(np.isfinite(slope), np.abs(1.0 + slope) / np.abs(slope), 1.0)
+        prev = (logp, g_step)
         kq = np.where(good, kappa, np.nan)
         steps.append(ReferenceStep(it, np.asarray(new.sigma_s_prime_per_mm).tolist(),
                                    np.asarray(new.sigma_a_per_mm).tolist(), render_s, fit_s,
                                    np.nanmedian(kq, axis=0).tolist(), np.nanpercentile(kq, 5, axis=0).tolist(),
                                    np.nanpercentile(kq, 95, axis=0).tolist(),
-                                   np.nanmedian(np.sqrt(kappa_var) / kq, axis=0).tolist(), change))
+                                   np.nanmedian(np.sqrt(kappa_var) / kq, axis=0).tolist(), change,
+                                   ssp.tolist(), sa.tolist()))
         result = new
-        if _settled(step, both, new, rel_tol):
+        if _settled(logp, np.log(np.stack([ssp_n, sa_n])), both, new, rel_tol, remaining):
             converged = True
             break
     inv = 1.0 / kappa_use

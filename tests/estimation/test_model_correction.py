@@ -132,3 +132,79 @@ def test_bad_arguments(observed):
         estimate_with_reference(obs, PAT, LIGHT, ETA, Reference(), max_iterations=0)
     failed = estimate_with_reference(np.full_like(obs, np.nan), PAT, LIGHT, ETA, Reference())
     assert not failed and failed.message.startswith("base fit (mc-table) failed")
+
+
+def _fit_with_intervals(ssp_ci, sa_ci):
+    from estimation.single_image import SingleImageResult
+
+    return SingleImageResult(True, "ok", "direct", "mc-table", ETA, sigma_s_prime_ci_per_mm=np.array([ssp_ci]),
+                             sigma_a_ci_per_mm=np.array([sa_ci]))
+
+
+def test_settled_judges_a_one_sided_interval_on_its_linear_scale():
+    """sigma_a's profile interval [0, hi] is one-sided: its log half-width is infinite, which used to make any
+    sigma_a step count as settled. Now the step in sigma_a is compared with a quarter of its standard error on
+    the linear scale, (hi / 2) / 1.96 / 4."""
+    from estimation.model_correction import _settled
+
+    # tolerances: sigma_s' 0.25 * 0.5 ln(1.44) / 1.96 = 0.0233 (log); sigma_a 0.25 * 0.002 / 1.96 = 0.000255 /mm
+    fit = _fit_with_intervals((1.0, 1.44), (0.0, 0.004))
+    on = np.array([True])
+
+    def settled(sa_from, sa_to, ssp_from=1.2, ssp_to=1.2):
+        return _settled(np.log([[ssp_from], [sa_from]]), np.log([[ssp_to], [sa_to]]), on, fit, rel_tol=0.01)
+
+    assert not settled(0.002, 0.001)        # |step| 0.001 > 0.000255 (formerly settled: tolerance inf)
+    assert not settled(0.0001, 0.0012)      # 12x up, still inside [0, hi]: 0.0011 > 0.000255
+    assert settled(0.002, 0.0018)           # 0.0002 <= 0.000255, though 10 % > rel_tol
+    assert settled(1e-7, 2e-4)              # from the floor: a 2000x step, yet small against the interval
+    assert not settled(0.002, 0.002, 1.2, 1.2 * 1.03)   # two-sided sigma_s': 0.0296 > 0.0233
+    assert settled(0.002, 0.002, 1.2, 1.2 * 1.02)       # 0.0198 <= 0.0233 (> rel_tol)
+    # channels that are not being estimated do not count; without intervals only rel_tol does
+    assert _settled(np.log([[1.2], [0.002]]), np.log([[2.4], [0.02]]), np.array([False]), fit, rel_tol=0.01)
+    bare = _fit_with_intervals((np.nan, np.nan), (np.nan, np.nan))
+    assert not _settled(np.log([[1.2], [0.002]]), np.log([[1.2], [0.00203]]), on, bare, rel_tol=0.01)
+    assert _settled(np.log([[1.2], [0.002]]), np.log([[1.2], [0.002019]]), on, bare, rel_tol=0.01)
+
+
+@pytest.mark.parametrize("map_slope", [0.6, -0.5, 0.0])
+def test_secant_slope_gives_the_refits_distance_to_the_fixed_point(map_slope):
+    """For an affine map F(x) = x* + lam (x - x*) two render points give the slope s = lam - 1 of G = F - x
+    exactly, and |G| |1 + s| / |s| is then the distance of the refit F(x) from x* (what _settled compares)."""
+    from estimation.model_correction import _secant_slope
+
+    x_star = np.array([[np.log(0.74)], [np.log(0.032)]])
+    f = lambda x: x_star + map_slope * (x - x_star)  # noqa: E731
+    x0 = x_star + np.array([[0.3], [-0.2]])
+    x1 = f(x0)
+    s = _secant_slope(x0, f(x0) - x0, x1, f(x1) - x1)
+    np.testing.assert_allclose(s, map_slope - 1.0, rtol=1e-12)
+    g1 = f(x1) - x1
+    np.testing.assert_allclose(np.abs(g1) * np.abs(1 + s) / np.abs(s), np.abs(f(x1) - x_star), rtol=1e-12)
+
+
+def test_secant_slope_is_bounded_and_undefined_without_a_step():
+    from estimation.model_correction import SECANT_SLOPE_BOUNDS, _secant_slope
+
+    x0, x1 = np.array([[0.0], [0.0]]), np.array([[0.1], [0.0]])
+    g0, g1 = np.array([[0.1], [0.05]]), np.array([[0.12], [0.0]])   # sigma_s': map slope 1.2 (expanding)
+    s = _secant_slope(x0, g0, x1, g1)
+    assert s[0, 0] == SECANT_SLOPE_BOUNDS[1] and np.isnan(s[1, 0])   # clipped; sigma_a did not move: unknown
+    s = _secant_slope(x0, g0, x1, np.array([[-0.5], [0.0]]))           # map slope -5: clipped to a 2-cycle
+    assert s[0, 0] == SECANT_SLOPE_BOUNDS[0]
+
+
+def test_settled_scales_the_step_by_the_remaining_factor():
+    """A step that is small against the interval is not enough when the map drifts slowly (slope 0.6: the refit is
+    still 1.5 steps from the fixed point), and a larger one is when it overshoots (slope -0.5: a third)."""
+    from estimation.model_correction import _settled
+
+    fit = _fit_with_intervals((1.0, 1.44), (0.0, 0.004))                # sigma_s' tolerance 0.0233 (log)
+    on = np.array([True])
+    a = np.log([[1.2], [0.002]])
+    b = np.log([[1.2 * 1.02], [0.002]])                                  # a 0.0198 step
+    assert _settled(a, b, on, fit, 0.01) and _settled(a, b, on, fit, 0.01, np.ones((2, 1)))
+    assert not _settled(a, b, on, fit, 0.01, np.full((2, 1), 1.5))       # 0.0297 to go
+    c = np.log([[1.2 * 1.06], [0.002]])                                  # a 0.0583 step
+    assert not _settled(a, c, on, fit, 0.01)
+    assert _settled(a, c, on, fit, 0.01, np.full((2, 1), 1 / 3))         # 0.0194 to go
