@@ -325,6 +325,7 @@ def test_bumpy_slab_albedo_and_normals_on_mc_frames(rig) -> None:
 
 
 @pytest.mark.skipif(not SLOW, reason="minutes of Monte Carlo on a 10^5-triangle relief; SSSRIG_SLOW_MC=1 runs it")
+@pytest.mark.timeout(3600)  # ~8 min on 2 free cores; the suite-wide 300 s would cut it off
 def test_bumpy_slab_relief_fit_on_mc_frames_slow(rig) -> None:
     """fit_relief on MC frames (96 x 96 px of 0.15 mm, 128 spp; ~8 min on 2 shared cores). Reports l' / l'_true;
     asserted only finite (no CI-sized measurement of its MC spread exists yet)."""
