@@ -182,23 +182,30 @@ def build_bvh(vertices: FloatArray, faces: npt.NDArray[np.int64], leaf_size: int
     return np.asarray(boxes), np.asarray(idx, dtype=np.int64), np.ascontiguousarray(tris)
 
 
-def convex_polyhedron(vertices: npt.ArrayLike, faces: npt.ArrayLike, rel_tol: float = 1e-6) -> bool:
-    """True when every vertex lies on the inner side of every (non-degenerate) face plane, within ``rel_tol``
-    times the bounding-box diagonal, for outward-wound ``faces``: the closed mesh then bounds the intersection of
-    its faces' inner half-spaces (a convex polyhedron). This is the property the refracted point-light connections
-    of :mod:`.nee` rely on (a face that faces the light sees it unoccluded from outside and every interior point
-    unoccluded from inside). Cost O(faces x vertices), in chunks; stops at the first violating chunk."""
+def _unit_face_normals(vertices: npt.ArrayLike, faces: npt.ArrayLike
+                       ) -> tuple[FloatArray, npt.NDArray[np.int64], npt.NDArray[np.int64], FloatArray, float]:
+    """(vertices, faces, indices of the non-degenerate faces, their outward unit normals, bounding-box diagonal);
+    a face is degenerate when twice its area is below 1e-12 diagonal^2."""
     v = np.asarray(vertices, float)
     f = np.asarray(faces, dtype=np.int64)
     tri = v[f]
     n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
     area2 = np.linalg.norm(n, axis=1)
     diag = float(np.linalg.norm(np.ptp(v, axis=0)))
-    keep = area2 > 1e-12 * max(diag, 1e-300) ** 2
-    if not np.any(keep):
+    keep = np.flatnonzero(area2 > 1e-12 * max(diag, 1e-300) ** 2)
+    return v, f, keep, n[keep] / area2[keep, None], diag
+
+
+def convex_polyhedron(vertices: npt.ArrayLike, faces: npt.ArrayLike, rel_tol: float = 1e-6) -> bool:
+    """True when every vertex lies on the inner side of every (non-degenerate) face plane, within ``rel_tol``
+    times the bounding-box diagonal, for outward-wound ``faces``: the closed mesh then bounds the intersection of
+    its faces' inner half-spaces (a convex polyhedron). This is the property the refracted point-light connections
+    of :mod:`.nee` rely on (a face that faces the light sees it unoccluded from outside and every interior point
+    unoccluded from inside). Cost O(faces x vertices), in chunks; stops at the first violating chunk."""
+    v, f, keep, n, diag = _unit_face_normals(vertices, faces)
+    if not keep.size:
         return False
-    n = n[keep] / area2[keep, None]
-    off = np.einsum("ij,ij->i", n, tri[keep, 0])
+    off = np.einsum("ij,ij->i", n, v[f[keep, 0]])
     tol = rel_tol * diag
     chunk = max(1, 1_000_000 // max(1, len(v)))
     for s in range(0, len(n), chunk):
@@ -239,14 +246,7 @@ def convex_face_table(vertices: npt.ArrayLike, faces: npt.ArrayLike, normal_tol:
     and its boundary as the 2-D convex hull of its vertices in the plane: edges (m, d) with in-plane inward unit
     normal m, inside iff m.q >= d. Layout (floats): [F, 0 x 7, then per face: nx, ny, nz, c, p0x, p0y, p0z,
     n_edges, then per edge: mx, my, mz, d]. Degenerate triangles (zero area) are ignored."""
-    v = np.asarray(vertices, float)
-    f = np.asarray(faces, dtype=np.int64)
-    tri = v[f]
-    nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    area2 = np.linalg.norm(nrm, axis=1)
-    diag = float(np.linalg.norm(np.ptp(v, axis=0)))
-    keep = np.flatnonzero(area2 > 1e-12 * max(diag, 1e-300) ** 2)
-    nrm = nrm[keep] / area2[keep, None]
+    v, f, keep, nrm, _ = _unit_face_normals(vertices, faces)
     label = np.full(len(keep), -1, dtype=np.int64)
     groups: list[npt.NDArray[np.int64]] = []
     for i in range(len(keep)):

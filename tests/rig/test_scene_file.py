@@ -134,6 +134,19 @@ def _write_mesh(folder: Path, name: str, units: str = "mm", subdivisions: int = 
     return name
 
 
+def _merge_sections(doc: dict[str, Any], sections: dict[str, Any]) -> dict[str, Any]:
+    """Override sections of a scene document: None removes a section, a dict merges into it (a None value removes
+    that key), anything else replaces it."""
+    for key, value in sections.items():
+        if value is None:
+            doc.pop(key, None)
+        elif isinstance(value, dict) and isinstance(doc.get(key), dict):
+            doc[key] = {k: v for k, v in {**doc[key], **value}.items() if v is not None}
+        else:
+            doc[key] = value
+    return doc
+
+
 def _scene_doc(image_path: str, mesh_path: str, /, *, units: str = "mm", channels: int = 3,
                **sections: dict[str, Any] | None) -> dict[str, Any]:
     """A scene document; ``sections`` merge into (dict) or replace / remove (None) the defaults."""
@@ -146,14 +159,7 @@ def _scene_doc(image_path: str, mesh_path: str, /, *, units: str = "mm", channel
         "point_lights": [{"position_mm": list(LIGHT_MM), "intensity": [INTENSITY] * channels}],
         "material": {"eta": ETA},
     }
-    for key, value in sections.items():
-        if value is None:
-            doc.pop(key, None)
-        elif isinstance(value, dict) and isinstance(doc.get(key), dict):  # merge; None removes a key
-            doc[key] = {k: v for k, v in {**doc[key], **value}.items() if v is not None}
-        else:
-            doc[key] = value
-    return doc
+    return _merge_sections(doc, sections)
 
 
 def _write_scene(folder: Path, doc: dict[str, Any], name: str = "scene.toml") -> Path:
@@ -578,14 +584,7 @@ def _mc_scene_doc(cam: PinholeCamera, **sections: dict[str, Any] | None) -> dict
         "material": {"eta": MC_ETA},
         "estimation": {"window_px": 3},
     }
-    for key, value in sections.items():
-        if value is None:
-            doc.pop(key, None)
-        elif isinstance(value, dict) and isinstance(doc.get(key), dict):  # merge; None removes a key
-            doc[key] = {k: v for k, v in {**doc[key], **value}.items() if v is not None}
-        else:
-            doc[key] = value
-    return doc
+    return _merge_sections(doc, sections)
 
 
 def test_mc_table_reference_corrects_the_edge_bias(tmp_path, capsys):

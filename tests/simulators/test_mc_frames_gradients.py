@@ -160,6 +160,17 @@ NORMAL_MAX_DEG = {"marble": 3.0, "skin1": 5.5}
 SPP = {"marble": 64, "skin1": 128}
 
 
+def sphere_mc_capture(name: str, rig):
+    """The Monte Carlo gradient capture (full + x, y, z, cross-polarized, 32 x 32 px, sensor noise off) of the
+    10 mm sphere of material ``name`` at SPP[name] paths per pixel and seed SEED."""
+    ssp, sa, _, _ = truth(name)
+    pos, inten, patterns, _, _ = rig
+    obj = SphereObject((0.0, 0.0, 0.0), RADIUS_MM, tuple(ssp), tuple(sa), ETA, tessellation=3)
+    return render_gradient_capture(obj, sphere_camera(32), pos, inten, patterns, polarizations=("cross",),
+                                   exposure_s=0.02, sensor=SENSOR, noise=False, render_mode="mc",
+                                   mc=MCSettings(spp=SPP[name], seed=SEED))
+
+
 @pytest.mark.parametrize("name", sorted(MATERIALS))
 def test_sphere_gradients_on_mc_frames(name: str, rig) -> None:
     """10 mm sphere, 32 x 32 px (0.05 rad LED cells), full + x, y, z, cross-polarized; compute_maps (LED mode) and
@@ -180,11 +191,8 @@ def test_sphere_gradients_on_mc_frames(name: str, rig) -> None:
     """
     ssp, sa, r_tab, r_jen = truth(name)
     pos, inten, patterns, leds, lut = rig
-    obj = SphereObject((0.0, 0.0, 0.0), RADIUS_MM, tuple(ssp), tuple(sa), ETA, tessellation=3)
     t0 = time.perf_counter()
-    cap = render_gradient_capture(obj, sphere_camera(32), pos, inten, patterns, polarizations=("cross",),
-                                  exposure_s=0.02, sensor=SENSOR, noise=False, render_mode="mc",
-                                  mc=MCSettings(spp=SPP[name], seed=SEED))
+    cap = sphere_mc_capture(name, rig)
     seconds = time.perf_counter() - t0
     assert cap.render_mode == "mc" and cap.led_mode == "distant" and set(cap.diffuse_stderr) == set(patterns)
     maps = maps_of(cap, rig)
@@ -234,11 +242,8 @@ def test_sphere_gradients_reference_corrected_on_mc_frames(name: str, rig) -> No
     """
     ssp, sa, _, _ = truth(name)
     pos, inten, patterns, leds, lut = rig
-    obj = SphereObject((0.0, 0.0, 0.0), RADIUS_MM, tuple(ssp), tuple(sa), ETA, tessellation=3)
     t0 = time.perf_counter()
-    cap = render_gradient_capture(obj, sphere_camera(32), pos, inten, patterns, polarizations=("cross",),
-                                  exposure_s=0.02, sensor=SENSOR, noise=False, render_mode="mc",
-                                  mc=MCSettings(spp=SPP[name], seed=SEED))
+    cap = sphere_mc_capture(name, rig)
     ref = GradientsMonteCarloReference(sphere_camera(32), pos, inten, patterns, lambda c: maps_of(c, rig), RADIUS_MM,
                                        spp=SPP[name], exposure_s=0.02, sensor=SENSOR)
     est = ref.estimate(cap)
