@@ -31,19 +31,15 @@ from estimation.single_image import PointLights
 from simulators.mc import Box, Medium, Mesh, render
 from simulators.mc.nee import light_contribution, min_inside_length
 from simulators.mc.shapes import STACK_SIZE
+from test_mc_frames_single_image import pyramid_mesh
 
 LO_MM = np.array([-2.0, -3.0, -2.5])
 HI_MM = np.array([2.0, 3.0, 2.5])
 
 
-def _pyramid(base_mm=6.0, height_mm=4.5):
-    a, z0 = base_mm / 2, -height_mm / 3
-    v = np.array([[-a, -a, z0], [a, -a, z0], [a, a, z0], [-a, a, z0], [0, 0, z0 + height_mm]])
-    f = np.array([[0, 2, 1], [0, 3, 2], [0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]])
-    m = trimesh.Trimesh(v, f, process=False)
-    if m.volume < 0:
-        m.invert()
-    return m
+def _pyramid() -> trimesh.Trimesh:
+    """A 6 mm square pyramid, 4.5 mm high, centroid at the origin."""
+    return pyramid_mesh(6.0, 4.5)
 
 
 def _rotation(seed):
