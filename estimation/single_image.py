@@ -489,6 +489,9 @@ _KAPPA_NORMAL = 3.5
 _N_PSEUDO = 6
 _CLUSTER_CELL_SPACINGS = 2.0  # finest cluster cell, in patch spacings
 _NODE_RATIO = 1.04  # log-spaced nodes of the direct method (cubic interpolation: relative error ~1e-5)
+# observation rows per block of the clustered far field: ~300k terms per block keep the traversal and the
+# moment sums in cache (measured at m = 10k: 128-512 rows 0.100-0.106 s, 1024 rows 0.118 s, 4096 rows 0.125 s)
+_FAR_CHUNK_ROWS = 384
 
 
 @dataclass(frozen=True)
@@ -574,7 +577,7 @@ class _SourceClusters:
                items: NDArray[np.intp]) -> _ClusterLevel:
         y = self.centers
         ctr = np.stack([np.bincount(inv, y[:, a], n) for a in range(3)], axis=1) / counts[:, None]
-        rel = y - ctr[inv]
+        rel = y - np.take(ctr, inv, axis=0)
         radius = np.zeros(n)
         np.maximum.at(radius, inv, np.sqrt(np.einsum("ka,ka->k", rel, rel)))
         points = np.repeat(ctr[:, None, None, :], self.n_ch * _N_PSEUDO, axis=1).reshape(n, self.n_ch, _N_PSEUDO, 3)
@@ -584,7 +587,7 @@ class _SourceClusters:
             total = np.bincount(inv, w, n)
             safe = np.where(total > 0, total, 1.0)
             mu = np.stack([np.bincount(inv, w * rel[:, a], n) for a in range(3)], axis=1) / safe[:, None]
-            dev = rel - mu[inv]
+            dev = rel - np.take(mu, inv, axis=0)
             cov = np.empty((n, 3, 3))
             for a in range(3):
                 for b in range(a, 3):
@@ -592,8 +595,9 @@ class _SourceClusters:
             lam, vec = np.linalg.eigh(cov)  # ascending: lam[:, 2] is the main axis
             lam = np.clip(lam, 0.0, None)
             base = ctr + mu
-            proj = np.einsum("ka,kab->kb", dev, vec[inv])  # member offsets along the principal axes
-            m3 = np.stack([np.bincount(inv, w * proj[:, b] ** 3, n) for b in range(3)], axis=1) / safe[:, None]
+            proj = np.einsum("ka,kab->kb", dev, np.take(vec, inv, axis=0))  # offsets along the principal axes
+            cube = proj * proj * proj  # (not proj ** 3: the float power is ~10x slower)
+            m3 = np.stack([np.bincount(inv, w * cube[:, b], n) for b in range(3)], axis=1) / safe[:, None]
             for q, (axis, kappa) in enumerate(((2, _KAPPA_TANGENT), (1, _KAPPA_TANGENT), (0, _KAPPA_NORMAL))):
                 # two points of weight total/kappa carrying variance kappa lambda and the axis' third moment:
                 # a+- = sd (+-g/2 + sqrt(1 + g^2/4)), weights in the ratio a-/a+ (zero mean), g their skewness
@@ -644,12 +648,12 @@ class _SourceClusters:
             j = np.repeat(np.arange(xs.shape[0]), n_top)
             kk = np.tile(np.arange(n_top), xs.shape[0])
             for lev in reversed(self.levels):
-                diff = xs[j]
-                diff -= lev.centers[kk]
+                diff = np.take(xs, j, axis=0)  # (np.take: ~3x faster than fancy indexing for row gathers)
+                diff -= np.take(lev.centers, kk, axis=0)
                 dc2 = np.einsum("ia,ia->i", diff, diff)
                 # accepted: r <= theta dc, dc - r > rho, dc + r <= cutoff (squared forms; r = inf for cells with
                 # no more members than pseudo-sources, which are always opened)
-                ra = lev.radius_accept[kk]
+                ra = np.take(lev.radius_accept, kk)
                 acc = ra * ra <= th2 * dc2
                 acc &= dc2 > (rho + ra) ** 2
                 if finite_cut:
@@ -662,15 +666,16 @@ class _SourceClusters:
                 if acc.any():
                     ja, ka = j[acc], kk[acc]
                     # |x - p|^2 = |x|^2 - 2 x.p + |p|^2 about the hierarchy's centre (no (T, P, 3) temporary)
-                    dist2 = np.einsum("ia,ipa->ip", xr[ja], lev.pts[ka])
+                    dist2 = np.einsum("ia,ipa->ip", np.take(xr, ja, axis=0), np.take(lev.pts, ka, axis=0))
                     dist2 *= -2.0
-                    dist2 += lev.pts_sq[ka]
-                    dist2 += xsq[ja][:, None]
-                    yield s, np.repeat(ja, _N_PSEUDO), dist2.reshape(-1, n_ch), lev.pts_w[ka].reshape(-1, n_ch)
+                    dist2 += np.take(lev.pts_sq, ka, axis=0)
+                    dist2 += np.take(xsq, ja)[:, None]
+                    yield (s, np.repeat(ja, _N_PSEUDO), dist2.reshape(-1, n_ch),
+                           np.take(lev.pts_w, ka, axis=0).reshape(-1, n_ch))
                 rep, kk = _csr_gather(lev.indptr, lev.items, kk[op])
                 j = j[op][rep]
-            diff = xs[j]
-            diff -= self.centers[kk]
+            diff = np.take(xs, j, axis=0)
+            diff -= np.take(self.centers, kk, axis=0)
             d2 = np.einsum("ia,ia->i", diff, diff)
             far = (d2 > rho2) & (d2 <= cutoff * cutoff)
             if far.any():
@@ -772,7 +777,7 @@ class _Geometry:
         n_ch = self.c_k.shape[1]
         if self.clusters is not None:
             cut = np.inf if self.dense else self.cutoff
-            gen = self.clusters.far_terms(self.obs, self.rho, cut, self.theta, chunk or 1024)
+            gen = self.clusters.far_terms(self.obs, self.rho, cut, self.theta, chunk or _FAR_CHUNK_ROWS)
         elif self.dense:
             gen = self._dense_blocks()
         else:
@@ -821,12 +826,18 @@ class _Geometry:
     def far_matrices(self, n_nodes: int, basis: Any) -> list[Array]:
         """W_c (m, n_nodes) = sum over far terms of weight x basis(distance), one dense matrix per channel.
 
-        ``basis.accumulate(d2, rows, weight, n_rows)`` returns the (n_rows, n_nodes) sum of weight x basis
-        weights of the terms (squared distances ``d2``) in each row (see :func:`_hat_basis`,
-        :func:`_cubic_log_basis`).
+        ``basis.moments(prep, weight, n_rows)`` returns per (row, interval) sums of the terms (``prep`` from
+        ``basis.prepare(d2, rows)``, squared distances ``d2``), additive over blocks of rows; ``basis.finish``
+        maps the summed moments to node weights once (see :func:`_hat_basis`, :func:`_cubic_log_basis`).
         """
         n_ch = self.c_k.shape[1]
-        acc = [np.zeros((self.m, n_nodes)) for _ in range(n_ch)]
+        acc: list[Array | None] = [None] * n_ch
+
+        def add(c: int, s: int, nr: int, mom: Array) -> None:
+            if acc[c] is None:
+                acc[c] = np.zeros((self.m * n_nodes, mom.shape[1]))
+            acc[c][s * n_nodes:(s + nr) * n_nodes] += mom  # type: ignore[index]
+
         for s, rows, d2, w in self.far_terms():
             if rows is None:  # dense block: every source, near pairs with weight 0
                 nr, k_src = d2.shape
@@ -834,7 +845,7 @@ class _Geometry:
                 prep = basis.prepare(d2.ravel(), rr)
                 for c in range(n_ch):
                     wc = w if c == 0 else np.where(w != 0, self.c_k[None, :, c], 0.0)
-                    acc[c][s:s + nr] += basis.accumulate(prep, wc.ravel(), nr)
+                    add(c, s, nr, basis.moments(prep, wc.ravel(), nr))
                 continue
             if rows.size == 0:
                 continue
@@ -843,8 +854,8 @@ class _Geometry:
             prep = basis.prepare(d2[:, 0], rows) if (shared or n_ch == 1) else None
             for c in range(n_ch):
                 pc = prep if prep is not None else basis.prepare(d2[:, c], rows)
-                acc[c][s:s + nr] += basis.accumulate(pc, w[:, c], nr)
-        return acc
+                add(c, s, nr, basis.moments(pc, w[:, c], nr))
+        return [np.zeros((self.m, n_nodes)) if a is None else basis.finish(a) for a in acc]
 
 
 class _HatBasis:
@@ -871,14 +882,23 @@ class _HatBasis:
         i += rows * n
         return i, frac
 
-    def accumulate(self, prep: tuple[NDArray[np.intp], Array], weight: Array, n_rows: int) -> Array:
+    def moments(self, prep: tuple[NDArray[np.intp], Array], weight: Array, n_rows: int) -> Array:
+        """Per (row, interval): (n_rows n, 2) sums of w and w (1 - beta); additive over blocks of terms."""
         flat, frac = prep
         size = n_rows * self.n
-        m0 = np.bincount(flat, weight, minlength=size)
-        m1 = np.bincount(flat, weight * frac, minlength=size)
-        out = m0 - m1
-        out[1:] += m1[:-1]  # (1 - beta) w goes to node i + 1 (i <= n - 2: same row)
-        return out.reshape(n_rows, self.n)
+        mom = np.empty((size, 2))
+        mom[:, 0] = np.bincount(flat, weight, minlength=size)
+        mom[:, 1] = np.bincount(flat, weight * frac, minlength=size)
+        return mom
+
+    def finish(self, mom: Array) -> Array:
+        """Node weights (n_rows, n) from summed :meth:`moments`."""
+        out = mom[:, 0] - mom[:, 1]
+        out[1:] += mom[:-1, 1]  # (1 - beta) w goes to node i + 1 (i <= n - 2: same row)
+        return out.reshape(-1, self.n)
+
+    def accumulate(self, prep: tuple[NDArray[np.intp], Array], weight: Array, n_rows: int) -> Array:
+        return self.finish(self.moments(prep, weight, n_rows))
 
 
 def _hat_basis(nodes: Array) -> _HatBasis:
@@ -952,7 +972,8 @@ class _CubicLogBasis:
         i += rows * self.n
         return i, v, v2, v2 * v
 
-    def accumulate(self, prep: tuple[NDArray[np.intp], Array, Array, Array], weight: Array, n_rows: int) -> Array:
+    def moments(self, prep: tuple[NDArray[np.intp], Array, Array, Array], weight: Array, n_rows: int) -> Array:
+        """Per (row, first node): (n_rows n, 4) sums of w v^p, p = 0..3; additive over blocks of terms."""
         flat, v, v2, v3 = prep
         size = n_rows * self.n
         mom = np.empty((size, 4))
@@ -960,11 +981,18 @@ class _CubicLogBasis:
         mom[:, 1] = np.bincount(flat, weight * v, minlength=size)
         mom[:, 2] = np.bincount(flat, weight * v2, minlength=size)
         mom[:, 3] = np.bincount(flat, weight * v3, minlength=size)
+        return mom
+
+    def finish(self, mom: Array) -> Array:
+        """Node weights (n_rows, n) from summed :meth:`moments` (one 4 x 4 map for all blocks)."""
         z = mom @ self._COEF  # (size, 4): the sums of w L_q(v) per (row, first node)
         out = z[:, 0].copy()
         for q in range(1, 4):
             out[q:] += z[:-q, q]  # node i + q (i <= n - 4: the same row)
-        return out.reshape(n_rows, self.n)
+        return out.reshape(-1, self.n)
+
+    def accumulate(self, prep: tuple[NDArray[np.intp], Array, Array, Array], weight: Array, n_rows: int) -> Array:
+        return self.finish(self.moments(prep, weight, n_rows))
 
 
 def _cubic_log_basis(nodes: Array) -> _CubicLogBasis:
