@@ -22,8 +22,9 @@ l ~ W r (Eq. 20-27), r = pinv(W) l (Eq. 28) and a dipole fit to r (Eq. 29), or â
   (:func:`estimation.dipole.cumulative_disk`); far pairs are point terms. G and R are represented on log-spaced
   nodes (4 %, 4-point Lagrange interpolation in log r, relative error <= 3e-5), so l = W [G(nodes); R(nodes)] and
   one model evaluation is one mat-vec. The weighted system is reduced once by a QR factorization to n x n
-  (n ~ 130 nodes, whatever the number m of observations), then: grid start, ``scipy.optimize.least_squares``
-  with bounds (3 starts); recovers its own forward model to ~1e-5.
+  (n ~ 130 nodes, whatever the number m of observations), then: grid start, a lockstep bounded
+  Levenberg-Marquardt from up to 9 starts (one batched model evaluation per iteration) and one
+  ``scipy.optimize.least_squares`` polish of the best; recovers its own forward model to ~1e-5.
 
 Cost. The far field (pairs beyond 2 patch spacings) of the direct method is summed exactly for small problems
 and, above :data:`EXACT_PAIR_BUDGET` (observation, source) pairs, over a Barnes-Hut hierarchy of source
@@ -76,6 +77,7 @@ from typing import Any, Iterator, Union
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage, optimize
+from scipy.linalg import lapack
 from scipy.spatial import cKDTree
 from scipy.spatial.distance import cdist
 
@@ -128,7 +130,10 @@ _COND_SINGULAR = 1.0 / np.finfo(np.float64).eps
 MAX_BINS = 1500
 _Z95 = 1.959963984540054
 _JAC_STEP = 6e-6  # central-difference step of the fit Jacobians (~eps^(1/3), relative to max(1, |theta|))
-_GOLDEN_ITERS = 24  # profile scan: bracket 10 x 0.618^24 ~ 1e-4 in log sigma_s' (SSR error ~1e-8 relative)
+_GOLDEN_ITERS = 12  # profile scan: bracket 10 x 0.618^12 ~ 3e-3 in log sigma_s', then one parabolic step
+_LM_MAX_ITER = 100  # lockstep multistart iterations (:func:`_lm_multistart`); measured 5-20
+_LM_RTOL = 1e-14  # multistart stop: Gauss-Newton predicted decrease <= _LM_RTOL x cost
+_LM_DAMPING = (0.1, 1.0, 10.0)  # damping values tried per start and iteration (x lambda), in the same batch
 
 
 # ---------------------------------------------------------------------------------------------- geometry
@@ -1007,13 +1012,21 @@ def _reduce(a: Array, b: Array) -> tuple[Array, Array, float]:
 
     ||a x - b||^2 = ||R x - Q^T b||^2 + offset for every x, so fits, Jacobians (J^T J) and profile scans on the
     n x n system are those of the full one at O(n^2) instead of O(m n) per evaluation. One Householder QR of
-    [a | b] without forming Q (numpy ``mode="r"``): its last column holds Q^T b and the residual norm.
+    [a | b] without forming Q: its last column holds Q^T b and the residual norm. LAPACK ``dgeqrt`` (the compact-WY
+    blocked QR, block 32) rather than numpy's ``dgeqrf``: the same reflectors, but the tall-skinny panels run as
+    matrix products. Measured single-threaded (OpenBLAS): 4.3 vs 5.6 ms on the benchmark sphere's direct system
+    (3148 x 122, twice per channel), on random matrices 4.2 vs 8.7 ms at 3148 x 123, 11 vs 19 ms at 8000 x 130,
+    0.7 vs 1.3 ms at 800 x 100, equal at 300 x 60 and 3000 x 400. The reduced SSR equals the unreduced one to
+    3e-13 (as numpy's did to 4e-13); the direct method's fitted parameters move by <= 3e-9.
     """
     m, n = a.shape
     if m <= n:
         return a, b, 0.0
-    r = np.linalg.qr(np.column_stack([a, b]), mode="r")
-    return np.ascontiguousarray(r[:n, :n]), r[:n, n].copy(), float(r[n, n] ** 2) if r.shape[0] > n else 0.0
+    ab = np.empty((m, n + 1), order="F")
+    ab[:, :n] = a
+    ab[:, n] = b
+    r = lapack.dgeqrt(min(32, n + 1), ab, overwrite_a=1)[0][:n + 1]
+    return np.ascontiguousarray(np.triu(r[:n, :n])), r[:n, n].copy(), float(r[n, n] ** 2)
 
 
 class _Problem:
@@ -1203,7 +1216,20 @@ def model_bias(sigma_s_prime_per_mm: ArrayLike, sigma_a_per_mm: ArrayLike, eta: 
 
 
 def _golden_batch(f: Any, lo: Array, hi: Array, iters: int = 32) -> tuple[Array, Array]:
-    """Vectorized golden-section minimization of f(x (T,)) -> (T,) on [lo, hi] per element."""
+    """Vectorized golden-section minimization of f(x (T,)) -> (T,) on [lo, hi] per element, finished by one
+    parabolic step. Returns the best point evaluated and its value.
+
+    After ``iters`` golden iterations (bracket [a, b] with interior points c < d) a third point is evaluated: the
+    bracket's midpoint, or the end lo / hi when the bracket still touches it (a monotone f never moves that end,
+    and its minimum is the end itself, which golden section approaches only geometrically). The vertex of the
+    parabola through the three points (clipped to [a, b]; the best of the three when they are not convex) is the
+    last evaluation; the best of c, d, the third point and the vertex is returned.
+
+    The finish replaces 12 golden iterations: measured on the benchmark sphere's sigma_a profile (42 elements,
+    bracket 10 in log sigma_s'), 12 iterations + parabola leave the values within 1e-6 s^2 of 40 golden
+    iterations wherever the minimum is interior, as 24 plain iterations did, and exact at a bracket end (24 plain
+    iterations: off by slope x 5e-5), at 16 batched calls instead of 27 (2.8 instead of 4.6 ms).
+    """
     g = (np.sqrt(5) - 1) / 2
     a, b = lo.copy(), hi.copy()
     c = b - g * (b - a)
@@ -1218,8 +1244,178 @@ def _golden_batch(f: Any, lo: Array, hi: Array, iters: int = 32) -> tuple[Array,
         f_eval = f(np.where(left, c_new, d_new))
         fc, fd = np.where(left, f_eval, fd), np.where(left, fc, f_eval)
         a, b, c, d = a_new, b_new, c_new, d_new
-    x = 0.5 * (a + b)
-    return x, f(x)
+    at_lo, at_hi = (a == lo) & (fc < fd), (b == hi) & (fd <= fc)
+    e = np.where(at_lo, lo, np.where(at_hi, hi, 0.5 * (a + b)))
+    fe = f(e)
+    # the three points in increasing order: (lo, c, d), (c, d, hi) or (c, midpoint, d)
+    x1, x2, x3 = np.where(at_lo, e, c), np.where(at_lo, c, np.where(at_hi, d, e)), np.where(at_hi, e, d)
+    f1, f2, f3 = np.where(at_lo, fe, fc), np.where(at_lo, fc, np.where(at_hi, fd, fe)), np.where(at_hi, fe, fd)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        s12, s23 = (f2 - f1) / (x2 - x1), (f3 - f2) / (x3 - x2)
+        u = 0.5 * (x1 + x2) - 0.5 * s12 * (x3 - x1) / (s23 - s12)  # (vertex: where the secant slopes' line is 0)
+    xs3, fs3 = np.stack([x1, x2, x3]), np.stack([f1, f2, f3])
+    cols = np.arange(lo.size)
+    best3 = xs3[np.argmin(np.where(np.isnan(fs3), np.inf, fs3), axis=0), cols]
+    u = np.where((s23 > s12) & np.isfinite(u), np.clip(u, a, b), best3)
+    xs = np.stack([c, d, e, u])
+    fs = np.stack([fc, fd, fe, f(u)])
+    k = np.argmin(np.where(np.isnan(fs), np.inf, fs), axis=0)
+    return xs[k, cols], fs[k, cols]
+
+
+def _box_qp_2d(g: Array, a: Array, lo: Array, hi: Array) -> Array:
+    """Exact minimizer d of g.d + d^T a d / 2 over the box lo <= d <= hi, for a batch: g (S, 2), a (S, 2, 2)
+    symmetric positive definite, lo <= 0 <= hi (S, 2). Returns d (S, 2).
+
+    A strictly convex quadratic attains its minimum over a rectangle either at its unconstrained minimizer (when
+    that lies inside) or on an edge, where it is the edge's 1-D minimizer clamped to the edge (corners included).
+    So the five candidates (unconstrained, four clamped edge minimizers) contain the answer: the feasible one with
+    the lowest model value wins. No active-set iteration, no Python loop over the batch (~30 us for S = 8).
+    """
+    s = g.shape[0]
+    a00, a01, a11 = a[:, 0, 0], a[:, 0, 1], a[:, 1, 1]
+    g0, g1 = g[:, 0], g[:, 1]
+    d0 = np.empty((5, s))
+    d1 = np.empty((5, s))
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        det = a00 * a11 - a01 * a01
+        d0[0] = (a01 * g1 - a11 * g0) / det
+        d1[0] = (a01 * g0 - a00 * g1) / det
+        d0[1], d0[2] = lo[:, 0], hi[:, 0]  # edges d0 = lo0, hi0
+        d1[1:3] = np.clip(-(g1 + a01 * d0[1:3]) / a11, lo[:, 1], hi[:, 1])
+        d1[3], d1[4] = lo[:, 1], hi[:, 1]  # edges d1 = lo1, hi1
+        d0[3:5] = np.clip(-(g0 + a01 * d1[3:5]) / a00, lo[:, 0], hi[:, 0])
+        q = g0 * d0 + g1 * d1 + 0.5 * (a00 * d0 * d0 + 2.0 * a01 * d0 * d1 + a11 * d1 * d1)
+    inside = (d0[0] >= lo[:, 0]) & (d0[0] <= hi[:, 0]) & (d1[0] >= lo[:, 1]) & (d1[0] <= hi[:, 1])
+    q[0, ~inside] = np.inf  # (NaN compares False: a singular a never picks the unconstrained candidate)
+    q[np.isnan(q)] = np.inf
+    k = np.argmin(q, axis=0)
+    cols = np.arange(s)
+    return np.stack([d0[k, cols], d1[k, cols]], axis=1)
+
+
+def _stencil(problem: _Problem, x: Array) -> tuple[Array, Array]:
+    """Residuals (n, S) and central-difference Jacobians (S, n, 2) at S points in ONE batched evaluation of 5 S
+    points; the steps and differences are those of :meth:`_Problem.jacobian`, so J equals its value at each point."""
+    s = x.shape[0]
+    h = _JAC_STEP * np.maximum(1.0, np.abs(x))
+    pts = np.tile(x, (5, 1))
+    pts[s:2 * s, 0] += h[:, 0]
+    pts[2 * s:3 * s, 0] -= h[:, 0]
+    pts[3 * s:4 * s, 1] += h[:, 1]
+    pts[4 * s:, 1] -= h[:, 1]
+    r = problem.resid(pts)
+    jac = np.stack([(r[:, s:2 * s] - r[:, 2 * s:3 * s]) / (2 * h[:, 0]),
+                    (r[:, 3 * s:4 * s] - r[:, 4 * s:]) / (2 * h[:, 1])], axis=2)  # (n, S, 2)
+    return r[:, :s], np.ascontiguousarray(jac.transpose(1, 0, 2))
+
+
+@dataclass
+class _Multistart:
+    """Result of :func:`_lm_multistart` per start: the end point x (S, 2), cost 0.5 ||r||^2 (S,) (as least_squares
+    reports it), the Jacobian there (S, n, 2), whether the start converged, and the lockstep loop's iterations."""
+    x: Array
+    cost: Array
+    jac: Array
+    converged: NDArray[np.bool_]
+    iterations: int
+
+
+def _lm_multistart(problem: _Problem, starts: Array, lb: Array, ub: Array, max_iter: int = _LM_MAX_ITER,
+                   rtol: float = _LM_RTOL, ftol: float = 1e-12, damping: tuple[float, ...] = _LM_DAMPING
+                   ) -> _Multistart:
+    """Bounded Levenberg-Marquardt from every start at once, in lockstep; returns every start's end point.
+
+    ``problem.resid`` costs about the same for one parameter vector as for ~50 (measured on the benchmark sphere,
+    10k patches, n = 122 reduced rows: 0.08 ms + 1.7 us per vector), while one ``least_squares`` call costs ~2 ms
+    of Python overhead. So every iteration is ONE batched evaluation: for each start still running, the trial
+    points of ``len(damping)`` damping values (lambda x ``damping``) together with their four central-difference
+    points (:func:`_stencil`: 15 vectors per start), so the accepted trial already carries its Jacobian and a
+    rejected one costs no extra call. The best trial of a start is accepted when it lowers the cost; lambda then
+    follows Nielsen's update (x max(1/3, 1 - (2 rho - 1)^3) on success, x nu, nu doubling, on failure), the damping
+    matrix being lambda diag(D), D the running max of diag(J^T J) (Marquardt-More scaling: a direction that barely
+    matters, log sigma_a -> its floor, is not frozen by the damping of the stiff one).
+
+    The step minimizes the damped Gauss-Newton model exactly over the box [lb, ub] (:func:`_box_qp_2d`): a
+    parameter at a bound (sigma_a at its floor, a legitimate optimum when sigma_a is not identified) stays there
+    while the other one moves along the edge. A start stops (``converged``) when the barely damped Gauss-Newton
+    step within the box promises at most ``rtol`` x cost of further decrease or moves less than 1e-12, when a good
+    step (rho > 1/4) gains less than ``ftol`` x cost (least_squares' ftol test), or when lambda exceeds 1e16; else
+    after ``max_iter`` iterations. Starts whose residuals or Jacobian are not finite are dropped (cost inf).
+
+    Measured on 23 multistarts (3-7 starts) from benchmark scenes (10k sphere direct and pinv, 4k spheres, three
+    channels, LED and sky): 256 iterations and 86 ms in all with damping (0.1, 1, 10), 509 iterations and 136 ms
+    with a single lambda; 5-8 iterations for starts near the optimum, 10-20 for far ones.
+    """
+    x = np.clip(np.asarray(starts, dtype=np.float64), lb, ub)
+    s = x.shape[0]
+    mult = np.asarray(damping, dtype=np.float64)
+    n_var = mult.size
+    r, jac = _stencil(problem, x)
+    cost = 0.5 * np.einsum("ns,ns->s", r, r)
+    live = np.isfinite(cost) & np.all(np.isfinite(jac), axis=(1, 2))
+    cost = np.where(live, cost, np.inf)
+    converged = np.zeros(s, dtype=bool)
+    lam = np.full(s, 1e-3)
+    nu = np.full(s, 2.0)
+    dsc = np.zeros((s, 2))  # Marquardt-More scaling: running max of diag(J^T J) per start
+    eye = np.eye(2)
+    it = 0
+    while it < max_iter and np.any(live):
+        it += 1
+        idx = np.flatnonzero(live)
+        k = idx.size
+        xs, js = x[idx], jac[idx]
+        g = np.einsum("snk,ns->sk", js, r[:, idx])
+        hess = js.transpose(0, 2, 1) @ js
+        diag_h = np.einsum("sii->si", hess)
+        dsc[idx] = np.maximum(dsc[idx], diag_h)
+        ds = np.maximum(dsc[idx], 1e-12 * np.max(dsc[idx], axis=1, keepdims=True) + np.finfo(np.float64).tiny)
+        lam_i = np.maximum(lam[idx], 1e-12)
+        # one box-QP batch: the barely damped Gauss-Newton step (the convergence test: it promises at most
+        # rtol x cost of further decrease) and the Levenberg-Marquardt steps at every damping variant
+        damp = np.concatenate([np.full(k, 1e-12), (mult[:, None] * lam_i).ravel()])
+        rep = np.tile(np.arange(k), n_var + 1)
+        d_all = _box_qp_2d(g[rep], hess[rep] + (damp[:, None] * ds[rep])[:, :, None] * eye, lb - xs[rep],
+                           ub - xs[rep])
+        x_all = np.clip(xs[rep] + d_all, lb, ub)  # (round-off off the box)
+        d_all = x_all - xs[rep]
+        pred_all = -np.einsum("sk,sk->s", d_all, g[rep] + 0.5 * np.einsum("sij,sj->si", hess[rep], d_all))
+        pred_gn = pred_all[:k]
+        done = ((pred_gn <= rtol * cost[idx])
+                | (np.max(np.abs(d_all[:k]), axis=1) <= 1e-12 * (1.0 + np.max(np.abs(xs), axis=1))))
+        converged[idx[done]] = True
+        live[idx[done]] = False
+        keep = np.flatnonzero(~done)
+        if keep.size == 0:
+            break
+        x_var = x_all[k:].reshape(n_var, k, 2)[:, keep].reshape(-1, 2)  # (variant-major: row j * k' + start)
+        pred_var = pred_all[k:].reshape(n_var, k)[:, keep]
+        idx, lam_i = idx[keep], lam_i[keep]
+        k = idx.size
+        r_new, jac_new = _stencil(problem, x_var)
+        cost_new = 0.5 * np.einsum("ns,ns->s", r_new, r_new)
+        cost_new = np.where(np.isfinite(cost_new) & np.all(np.isfinite(jac_new), axis=(1, 2)), cost_new, np.inf)
+        j_best = np.argmin(cost_new.reshape(n_var, k), axis=0)
+        flat = j_best * k + np.arange(k)
+        c_best = cost_new[flat]
+        acc = c_best < cost[idx]
+        decrease = np.where(acc, cost[idx] - np.where(acc, c_best, 0.0), 0.0)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rho = np.where(acc, decrease / pred_var[j_best, np.arange(k)], 0.0)
+        # least_squares' ftol test: a good step (rho > 1/4) that gains less than ftol x cost ends the start
+        flat_cost = acc & (rho > 0.25) & (decrease <= ftol * cost[idx])
+        ia, fa = idx[acc], flat[acc]
+        x[ia], cost[ia], r[:, ia], jac[ia] = x_var[fa], c_best[acc], r_new[:, fa], jac_new[fa]
+        lam_c = lam_i * mult[j_best]
+        lam[idx] = np.where(acc, lam_c * np.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3),
+                            lam_i * mult[-1] * nu[idx])
+        nu[idx] = np.where(acc, 2.0, 2.0 * nu[idx])
+        # damping beyond 1e16 (relative to diag(J^T J)): steps below round-off of the cost, nothing left to gain
+        stuck = (lam[idx] > 1e16) | flat_cost
+        converged[idx[stuck]] = True
+        live[idx[stuck]] = False
+    return _Multistart(x, cost, jac, converged, it)
 
 
 @dataclass
@@ -1237,8 +1433,17 @@ class _ChannelFit:
 
 
 def _fit_channel(problem: _Problem, sa_floor: float, n_params_dof: int = 2, known_noise: bool = False,
-                 profile: bool = True, model_error: float = 0.0, start_hint: Array | None = None) -> _ChannelFit:
+                 profile: bool = True, model_error: float = 0.0, start_hint: Array | None = None,
+                 polish: bool = True) -> _ChannelFit:
     """Grid start + bounded least squares in (log sigma_s', log sigma_a); Wald covariance and sigma_a profile.
+
+    Every start (best grid point, +-2 in log sigma_a, up to 4 other local minima of the grid, ``start_hint``) runs
+    at once in :func:`_lm_multistart`; the best end point is then polished by one ``least_squares("trf")`` call with
+    the settings every start used to get on its own (``polish``; False skips it), and the polished point, cost and
+    Jacobian are returned. Measured on the benchmark sphere (10k patches, sky map): ~3.9 ms for the direct method's
+    first fit (no polish, no profile; ~9.5 ms with one least_squares per start) and ~7.6 ms for the final one
+    (~14.5 ms; the profile scan 2.8 of it, was 4.7); parameters equal to 1e-9 relative, sigma_a interval ends to
+    1e-7 (<= 7e-6 over 1- and 3-channel sky / LED scenes with 0-20 % noise).
 
     The residual scale is s^2 = SSR/dof (or 1 for known noise), floored so that the 95 % thresholds are never
     tighter than a relative model error ``model_error`` on every datum: Delta SSR >= sum (model_error * data *
@@ -1266,21 +1471,36 @@ def _fit_channel(problem: _Problem, sa_floor: float, n_params_dof: int = 2, know
     starts += [grid[i] for i in cand if np.max(np.abs(grid[i] - x0)) > 0][:4]
     if start_hint is not None and np.all(np.isfinite(start_hint)):
         starts.append(np.clip(np.asarray(start_hint, dtype=np.float64), lb, ub))
-    best = None
-    for start in starts:
-        res = optimize.least_squares(lambda t: problem.resid(t[None, :])[:, 0], start, jac=problem.jacobian,
+    # every start at once (one batched evaluation per iteration), then one trust-region polish of the best. The
+    # multistart's box is the one least_squares("trf") works in: its iterates stay strictly inside [lb, ub] (x0 is
+    # moved 1e-10 x max(1, |bound|) off an active bound), so the polish starts where TRF would, never ends worse
+    # than the multistart's point, and sigma_a at its floor is reported >= the floor, as before.
+    shrink = 1e-10 * np.maximum(1.0, np.abs(lb)), 1e-10 * np.maximum(1.0, np.abs(ub))
+    lb_in, ub_in = lb + shrink[0], ub - shrink[1]
+    start_arr = np.clip(np.array(starts), lb_in, ub_in)
+    _, first = np.unique(start_arr, axis=0, return_index=True)  # (x0 - 2 clipped to the floor repeats x0)
+    start_arr = start_arr[np.sort(first)]
+    ms = _lm_multistart(problem, start_arr, lb_in, ub_in)
+    i_best = int(np.argmin(ms.cost))
+    if not np.isfinite(ms.cost[i_best]):
+        return _ChannelFit(np.full(2, np.nan), np.full((2, 2), np.nan), np.nan, np.nan, problem.nfev, np.nan,
+                           (np.nan, np.nan), False, False, "model evaluation is not finite at every start")
+    theta, cost, J = ms.x[i_best].copy(), float(ms.cost[i_best]), ms.jac[i_best]
+    ok = bool(ms.converged[i_best])
+    msg = "ok" if ok else f"batched Levenberg-Marquardt: no convergence in {ms.iterations} iterations"
+    if polish:
+        res = optimize.least_squares(lambda t: problem.resid(t[None, :])[:, 0], theta, jac=problem.jacobian,
                                      bounds=(lb, ub), method="trf", x_scale=1.0, xtol=1e-12, ftol=1e-12, gtol=1e-12,
                                      max_nfev=400)
-        if best is None or res.cost < best.cost:
-            best = res
-    assert best is not None
-    theta = best.x
-    ssr_min = 2.0 * best.cost + problem.offset
+        ok = bool(res.status > 0)
+        msg = "ok" if res.success else f"least_squares: {res.message}"
+        if res.cost <= cost:  # (else keep the multistart's point, whose J is the same central difference)
+            theta, cost, J = res.x, float(res.cost), res.jac
+    ssr_min = 2.0 * cost + problem.offset
     dof = max(problem.n_data - n_params_dof, 1)
     s2 = 1.0 if known_noise else max(ssr_min / dof, 1e-300)
     if model_error > 0:
         s2 = max(s2, float(np.sum((model_error * problem.weighted_data) ** 2)) / _CHI2_1_95)
-    J = best.jac
     try:
         sv = np.linalg.svd(J, compute_uv=False)
         jac_cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else np.inf
@@ -1291,8 +1511,7 @@ def _fit_channel(problem: _Problem, sa_floor: float, n_params_dof: int = 2, know
     one_sided = False
     if profile:
         ci, one_sided = _profile_sigma_a(problem, theta, ssr_min, s2, lb, ub)
-    msg = "ok" if best.success else f"least_squares: {best.message}"
-    return _ChannelFit(theta, cov, ssr_min, s2, problem.nfev, jac_cond, ci, one_sided, bool(best.status > 0), msg)
+    return _ChannelFit(theta, cov, ssr_min, s2, problem.nfev, jac_cond, ci, one_sided, ok, msg)
 
 
 def _profile_sigma_a(problem: _Problem, theta: Array, ssr_min: float, s2: float, lb: Array, ub: Array
@@ -1604,8 +1823,11 @@ def estimate_single_image(observed_radiance: ArrayLike, patches: Patches, lights
             if sig is None:
                 # relative weights from the data correlate with its noise (noisy-low pixels get large weights,
                 # a bias at high noise); one reweighting step takes them from the first fit's prediction instead
+                # (the first fit only sets the weights, so it skips the trust-region polish, ~0.7 ms: measured over
+                # 11 sphere scenes, 1-3 channels, 0-20 % noise, the multistart's point differs from the polished one
+                # by <= 5e-13 in log parameters and the final parameters by <= 2e-11 relative)
                 first = _fit_channel(_Problem.weighted(vector_fn, w_tot, l_c, w_obs), sigma_a_floor_per_mm,
-                                     profile=False, model_error=model_error, start_hint=hints[c])
+                                     profile=False, model_error=model_error, start_hint=hints[c], polish=False)
                 if np.all(np.isfinite(first.theta)):
                     pred0 = np.abs(w_tot @ vector_fn(first.theta[None, :])[:, 0])
                     if np.max(pred0) > 0:
