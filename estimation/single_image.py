@@ -41,9 +41,17 @@ system (one Householder QR of [W | l] without forming Q). The published ``pinv``
 :data:`EXACT_PAIR_BUDGET_BINNED` pairs — reproducing the dense textbook computation — and cluster beyond it
 with the tighter opening :data:`FAR_FIELD_THETA_BINNED` (0.2; at 10k patches -0.13 % in sigma_s', but the
 ill-conditioning makes that error erratic in the opening: 0.15 gave -0.8 %, 0.25 -3.6 %). Measured
-(benchmarks/single_image.py section 3, sphere, marble-R under a sky map, 2 shared cores; ratios within one
-run): at 10k patches (3148 observed) the direct method is ~4x faster than the literal dense pinv and our
-exact-far-field pinv ~2x (equal parameters); the literal dense method needs 8 m_obs m bytes (6.3 GB at 50k).
+(benchmarks/single_image.py section 3, sphere, marble-R under a sky map, one BLAS thread; ratios within one
+run): at 10k patches (3148 observed) the direct method takes ~0.12 s, ~6x faster than the literal dense pinv
+(0.78 s), and our exact-far-field pinv ~2x (equal parameters); 50k patches take ~0.8 s; the literal dense method
+needs 8 m_obs m bytes (6.3 GB at 50k). Anatomy at 10k: far field ~0.07 s (3.0 M pseudo-source and point terms,
+~23 ns each: traversal, gathers, log-index, four bincounts), cluster build ~0.015 s, near rings ~0.01 s, the two
+fits with their QR reductions ~0.022 s. Tried and not adopted (measured at 10k): a dual-tree second-order
+Cartesian Taylor FMM (114 k cell pairs + 280 k point terms instead of 3.0 M terms, but no faster — every
+accepted pair scatters 4 nodes x 10 monomials — and 3-4x the error, rms 1.0e-3 of l for marble-R); per-cell
+quadrupole terms instead of 6 pseudo-sources (0.9 M terms, 1.5x the error); two threads (numpy's bincount,
+gathers and einsum hold the GIL: 0.7-0.9x); scipy.sparse products for the moment sums (1.5-2.5x slower than
+bincount).
 
 Models (``model=``, :data:`MODELS_ALL`): the dipoles of :mod:`.dipole` and ``"mc-table"``, the packaged Monte Carlo
 table of the half-space profile (:mod:`.mc_table`, eta 1.0-1.8, checked up front). For the table every method uses
