@@ -69,7 +69,11 @@ reached (sigma_s' error, frame seeds 1, 2, 3; steps of seed 1):
 
 So the iteration converges there; at 256-spp frames the scene does not hold sigma_s' to 10 %. The refit's 95 %
 interval (0.26-1.27 of the truth at the end of the 256/128 run, seed 1) is computed from M', not Q', and is too narrow by
-the factor above along the ridge. Also measured there and rejected: an Anderson / multisecant step (type II,
+the factor above along the ridge. The reported intervals are therefore widened to the fixed point's
+(:func:`_propagate_intervals`): by max(1, 1/|s|) per parameter, s the last secant slope of G along the path
+(slope 0.6 of the map: x2.5; on a synthetic reference of half the fast model's sensitivity the widened interval
+matches the spread of the fixed point over noise seeds, tests/estimation/test_model_correction.py), the refit's
+own intervals kept in ``extra["interval_propagation"]``. Also measured there and rejected: an Anderson / multisecant step (type II,
 memory 2, capped at the larger of the Picard step and the refit's half-width) extrapolated through the
 non-identified sigma_a of a marble pyramid under a point light to +98 % and ended 17-24 % off (3 of 3 seeds; the
 Picard iteration: within 4 %); a per-parameter secant step diverged on the 4096-spp skin1 pyramid (-75 %), whose
@@ -90,6 +94,7 @@ The reference renderer is any callable ``reference(sigma_s_prime_per_mm (C,), si
 """
 from __future__ import annotations
 
+import inspect
 import time
 from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
@@ -189,6 +194,10 @@ def _smooth(op: csr_matrix | None, kappa: Array, kappa_var: Array) -> tuple[Arra
 #: refit's own standard error (the 95 % half-width / 1.96) in every parameter, or below ``rel_tol``
 SETTLE_SD_FRACTION: float = 0.25
 _Z95 = 1.959963984540054
+#: secant slope of G assumed where none was measured (map slope 1/2, as the stop rule assumes after one render)
+_ASSUMED_SLOPE = -0.5
+#: estimate_single_image's default identifiable_ratio (the widened sigma_a interval is judged by the same rule)
+_IDENTIFIABLE_RATIO = float(inspect.signature(estimate_single_image).parameters["identifiable_ratio"].default)
 
 
 def _settled(render_log: Array, new_log: Array, channels: NDArray[np.bool_], fit: SingleImageResult,
@@ -262,24 +271,104 @@ def _finite_params(r: SingleImageResult) -> tuple[Array, Array, NDArray[np.bool_
     return ssp, sa, ok
 
 
+def _widen(ci: Array | None, est: Array, factor: Array) -> Array | None:
+    """95 % intervals (C, 2) about the estimates (C,) widened by ``factor`` (C,): in log for a two-sided interval
+    (lo > 0), linearly about the estimate for a one-sided one [0, hi] (its lower end stays 0)."""
+    if ci is None:
+        return None
+    c = np.array(ci, dtype=np.float64).reshape(-1, 2)
+    e = np.asarray(est, dtype=np.float64).reshape(-1)
+    two = np.isfinite(c[:, 0]) & (c[:, 0] > 0) & np.isfinite(c[:, 1]) & (e > 0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lo2 = e * (c[:, 0] / e) ** factor
+        hi2 = e * (c[:, 1] / e) ** factor
+    hi1 = e + factor * (c[:, 1] - e)
+    out = c.copy()
+    out[two, 0], out[two, 1] = lo2[two], hi2[two]
+    one = ~two & np.isfinite(c[:, 1])
+    out[one, 1] = np.maximum(hi1[one], c[one, 1])
+    return out
+
+
+def _propagate_intervals(result: SingleImageResult, slope: Array, identifiable_ratio: float
+                         ) -> tuple[SingleImageResult, dict[str, Any]]:
+    """Widen the refit's intervals of (sigma_s', sigma_a) to the fixed point's, by the map's slope along the path.
+
+    The refit's intervals come from the fast model's sensitivity M': they describe F(p)'s noise e. The fixed point
+    p* = F(p*) moves by (I - dF/dp)^-1 e (module docstring): by 1 / |s| per parameter for the secant slope s of
+    G = F - p (``slope`` (2, C), :func:`_secant_slope`), the slope along the path the iteration took — which is
+    the direction it converges slowest in, where the amplification is largest (a diagonal, along-path estimate
+    of (I - dF/dp)^-1, the one the stop rule uses too). The factor is never below 1 (an overshooting map would
+    narrow the interval, which a noisy secant does not justify); where no slope was measured (the iteration
+    settled after one render) it is 2, the map slope of 1/2 the stop rule assumes then (:func:`_settled`).
+    sigma_a's identifiability is judged again on the widened interval. Returns the widened result and what was
+    done (``extra["interval_propagation"]``).
+    """
+    s = np.asarray(slope, dtype=np.float64)
+    known = np.isfinite(s)
+    with np.errstate(divide="ignore"):
+        factor = np.where(known, np.maximum(1.0, 1.0 / np.abs(np.where(known, s, 1.0))), 1.0 / abs(_ASSUMED_SLOPE))
+    ssp = np.asarray(result.sigma_s_prime_per_mm, dtype=np.float64)
+    sa = np.asarray(result.sigma_a_per_mm, dtype=np.float64)
+    info: dict[str, Any] = {
+        "method": "refit intervals x max(1, 1/|s|), s the secant slope of F(p) - p along the path (log parameters;"
+                  " s = -1/2 assumed where not measured)",
+        "map_slope": np.where(known, 1.0 + s, np.nan).tolist(), "factor": factor.tolist(),
+        "refit_sigma_s_prime_ci_per_mm": None if result.sigma_s_prime_ci_per_mm is None
+        else np.asarray(result.sigma_s_prime_ci_per_mm).tolist(),
+        "refit_sigma_a_ci_per_mm": None if result.sigma_a_ci_per_mm is None
+        else np.asarray(result.sigma_a_ci_per_mm).tolist(),
+        "slope_known": known.tolist()}
+    ssp_ci = _widen(result.sigma_s_prime_ci_per_mm, ssp, factor[0])
+    sa_ci = _widen(result.sigma_a_ci_per_mm, sa, factor[1])
+    sa_ci_jac = _widen(result.sigma_a_ci_jacobian_per_mm, sa, factor[1])
+    ident = list(result.sigma_a_identifiable_per_channel)
+    reasons = result.identifiability_reason
+    if sa_ci is not None and ident:
+        ident = []
+        parts = []
+        for c, (lo, hi) in enumerate(sa_ci):
+            if not lo > 0:
+                ident.append(False)
+                parts.append(f"channel {c}: the fixed point's 95% interval of sigma_a reaches 0 ({lo:.3g}-{hi:.3g} /mm)")
+            elif hi / lo > identifiable_ratio:
+                ident.append(False)
+                parts.append(f"channel {c}: the fixed point's 95% interval of sigma_a spans a factor {hi / lo:.3g} "
+                             f"(> {identifiable_ratio:g}): {lo:.3g}-{hi:.3g} /mm")
+            else:
+                ident.append(True)
+                parts.append(f"channel {c}: sigma_a within {lo:.3g}-{hi:.3g} /mm (factor {hi / lo:.3g}, "
+                             f"widened x{factor[1, c]:.2g} for the reference iteration)")
+        reasons = "; ".join(parts)
+    out = replace(result, sigma_s_prime_ci_per_mm=ssp_ci, sigma_a_ci_per_mm=sa_ci,
+                  sigma_a_ci_jacobian_per_mm=sa_ci_jac, sigma_a_identifiable=bool(ident) and all(ident),
+                  sigma_a_identifiable_per_channel=tuple(ident), identifiability_reason=reasons)
+    return out, info
+
+
 def estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lights: Lights, eta: float,
                             reference: ReferenceRenderer, *, noise_sigma: ArrayLike | None = None,
                             base_model: str = "mc-table", max_iterations: int = 4, rel_tol: float = 0.01,
-                            seed: int = 1, smooth_spacings: float = 1.5, **fit_kwargs: Any) -> SingleImageResult:
+                            seed: int = 1, smooth_spacings: float = 1.5, min_iterations: int = 1,
+                            **fit_kwargs: Any) -> SingleImageResult:
     """Fit ``base_model`` and correct it by ``reference`` renders of the scene until the parameters settle.
 
     ``observed_radiance``, ``noise_sigma``, ``patches``, ``lights``, ``eta`` and ``fit_kwargs`` are those of
     :func:`estimation.single_image.estimate_single_image` (``method`` defaults to "direct"). ``reference`` is
-    called at most ``max_iterations`` times, always with ``seed`` (common random numbers; the module docstring);
+    called at most ``max_iterations`` times (at least ``min_iterations``), always with ``seed`` (common random numbers; the module docstring);
     each refit also starts from the point just rendered (``start_per_mm``). Returns the last fit, with ``model``
     set to ``"<base_model>+reference"`` and ``extra["reference"]`` holding every step (the refit's parameters, the
     point rendered, seconds, the correction's median / 5th / 95th percentile), ``extra["converged"]`` (the last
     refit was estimated close to the fixed point: :func:`_settled`) and ``extra["model_bias"]``, the base
-    model's radiance over the reference's at the final parameters. A failed base fit is returned as it is
+    model's radiance over the reference's at the final parameters. The intervals of sigma_s' and sigma_a are the
+    fixed point's: the refit's widened by the map's slope along the path (:func:`_propagate_intervals`;
+    ``extra["interval_propagation"]`` keeps the refit's own and the factors); R_d and l_d keep the refit's. A failed base fit is returned as it is
     (falsy, its message prefixed); a reference that returns no usable value raises ``ValueError`` naming it.
     """
     if max_iterations < 1:
         raise ValueError("max_iterations must be >= 1")
+    if not 1 <= min_iterations <= max_iterations:
+        raise ValueError("min_iterations must lie in [1, max_iterations]")
     if not rel_tol > 0:
         raise ValueError("rel_tol must be > 0")
     if not smooth_spacings >= 0:
@@ -308,6 +397,7 @@ def estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, ligh
     last_step: Array | None = None
     relax = np.ones((2, n_ch))
     prev: tuple[Array, Array] | None = None  # last render point and G = F - x there (log, (2, C))
+    last_slope = np.full((2, n_ch), np.nan)  # latest secant slope of G per parameter (interval propagation)
     for it in range(1, max_iterations + 1):
         ssp, sa, ok_ch = _finite_params(result)
         if not ok_ch.any():
@@ -357,6 +447,7 @@ def estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, ligh
         # slope of G along the path, per parameter: the refit F(p) is |G| |1 + s| / |s| from the fixed point
         # (1 x |G| while unknown, i.e. a map slope of 1/2 assumed after the first render)
         slope = np.full((2, n_ch), np.nan) if prev is None else _secant_slope(prev[0], prev[1], logp, g_step)
+        last_slope = np.where(np.isfinite(slope), slope, last_slope)
         remaining = np.where(np.isfinite(slope), np.abs(1.0 + slope) / np.abs(slope), 1.0)
         prev = (logp, g_step)
         kq = np.where(good, kappa, np.nan)
@@ -367,7 +458,7 @@ def estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, ligh
                                    np.nanmedian(np.sqrt(kappa_var) / kq, axis=0).tolist(), change,
                                    ssp.tolist(), sa.tolist()))
         result = new
-        if _settled(logp, np.log(np.stack([ssp_n, sa_n])), both, new, rel_tol, remaining):
+        if it >= min_iterations and _settled(logp, np.log(np.stack([ssp_n, sa_n])), both, new, rel_tol, remaining):
             converged = True
             break
     inv = 1.0 / kappa_use
@@ -380,10 +471,16 @@ def estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, ligh
             "radiance_ratio_p95": np.nanpercentile(np.where(fin, inv, np.nan), 95, axis=0).tolist(),
             "rms_log_ratio": np.sqrt(np.nanmean(log_inv ** 2, axis=0)).tolist(),
             "table_level": result.extra.get("model_bias")}
+    result, propagation = _propagate_intervals(result, last_slope,
+                                               float(fit_kwargs.get("identifiable_ratio", _IDENTIFIABLE_RATIO)))
     extra = {**result.extra, "reference": [s.as_dict() for s in steps], "converged": converged,
+             "interval_propagation": propagation,
              "reference_iterations": len(steps) - 1, "model_bias": bias, "base_model": base_model,
              "seconds_total": time.perf_counter() - t_all}
     msg = result.message if converged else (f"{result.message}; reference iteration stopped after "
                                             f"{len(steps) - 1} renders with a last change of "
                                             f"{steps[-1].change:.1%} (> rel_tol {rel_tol:.1%})")
+    if not np.all(np.isfinite(last_slope)):
+        msg += ("; the map's slope was not measured (one render, or a parameter that did not move): its intervals "
+                "are the refit's widened x2, the slope the stop rule assumes (min_iterations=2 measures it)")
     return replace(result, model=f"{base_model}+reference", message=msg, extra=extra)

@@ -1001,6 +1001,7 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
             res = SingleImageResult(False, f"Monte Carlo reference: {exc}", meth, model_name, scene.material.eta)
         reference_out = {**ref_info, "base_model": "mc-table", "max_iterations": iterations, "seed": ref_seed,
                          "steps": res.extra.get("reference", []), "converged": res.extra.get("converged"),
+                         "interval_propagation": res.extra.get("interval_propagation"),
                          "renders": list(ref.renders),
                          "render_seconds_total": float(sum(r["seconds"] for r in ref.renders)),
                          "seconds_total": res.extra.get("seconds_total")}

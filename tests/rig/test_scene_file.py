@@ -635,6 +635,12 @@ def test_mc_table_reference_corrects_the_edge_bias(tmp_path, capsys):
         assert {"sigma_s_prime_per_mm", "sigma_a_per_mm", "render_seconds", "kappa_median"} <= set(step)
     assert all(s["render_seconds"] > 0 for s in ref["steps"][1:])
     assert isinstance(res["converged"], bool) and res["converged"] == ref["converged"]
+    # the reported intervals are the fixed point's: the refit's widened, never narrowed, by the recorded factors
+    prop = ref["interval_propagation"]
+    assert all(f >= 1.0 for row in prop["factor"] for f in row)
+    lo_r, hi_r = prop["refit_sigma_s_prime_ci_per_mm"][0]
+    lo_s, hi_s = res["parameters"]["sigma_s_prime_per_mm"]["ci95"][0]
+    assert lo_s <= lo_r and hi_r <= hi_s
     bias = res["model_bias"]
     assert bias["model"] == "mc-table" and bias["radiance_ratio_median"][0] > 1.0  # the flat model over-predicts
     assert ref["steps"][0]["sigma_s_prime_per_mm"] == plain["parameters"]["sigma_s_prime_per_mm"]["value"]
