@@ -105,7 +105,8 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.sparse import csr_matrix
 from scipy.spatial import cKDTree
 
-from .single_image import Lights, Patches, SingleImageResult, estimate_single_image, predict_radiance
+from .single_image import (Lights, Patches, SingleImageResult, estimate_single_image, predict_radiance,
+                           sigma_a_verdict)
 
 __all__ = ["ReferenceRenderer", "ReferenceStep", "estimate_with_reference"]
 
@@ -325,21 +326,10 @@ def _propagate_intervals(result: SingleImageResult, slope: Array, identifiable_r
     ident = list(result.sigma_a_identifiable_per_channel)
     reasons = result.identifiability_reason
     if sa_ci is not None and ident:
-        ident = []
-        parts = []
-        for c, (lo, hi) in enumerate(sa_ci):
-            if not lo > 0:
-                ident.append(False)
-                parts.append(f"channel {c}: the fixed point's 95% interval of sigma_a reaches 0 ({lo:.3g}-{hi:.3g} /mm)")
-            elif hi / lo > identifiable_ratio:
-                ident.append(False)
-                parts.append(f"channel {c}: the fixed point's 95% interval of sigma_a spans a factor {hi / lo:.3g} "
-                             f"(> {identifiable_ratio:g}): {lo:.3g}-{hi:.3g} /mm")
-            else:
-                ident.append(True)
-                parts.append(f"channel {c}: sigma_a within {lo:.3g}-{hi:.3g} /mm (factor {hi / lo:.3g}, "
-                             f"widened x{factor[1, c]:.2g} for the reference iteration)")
-        reasons = "; ".join(parts)
+        verdicts = [sigma_a_verdict(float(lo), float(hi), identifiable_ratio) for lo, hi in sa_ci]
+        ident = [v[0] for v in verdicts]
+        reasons = "; ".join(f"channel {c}: {why} (fixed point: the refit's interval widened x{factor[1, c]:.2g})"
+                            for c, (_, why) in enumerate(verdicts))
     out = replace(result, sigma_s_prime_ci_per_mm=ssp_ci, sigma_a_ci_per_mm=sa_ci,
                   sigma_a_ci_jacobian_per_mm=sa_ci_jac, sigma_a_identifiable=bool(ident) and all(ident),
                   sigma_a_identifiable_per_channel=tuple(ident), identifiability_reason=reasons)

@@ -1918,19 +1918,11 @@ def estimate_single_image(observed_radiance: ArrayLike, patches: Patches, lights
     ident: list[bool] = []
     reasons: list[str] = []
     for c in range(n_ch):
-        lo, hi = sa_ci[c]
-        if one_sided[c] or lo <= 0:
-            ident.append(False)
-            reasons.append(f"channel {c}: the 95% interval of sigma_a reaches the floor ({lo:.3g}-{hi:.3g} /mm, "
-                           f"one-sided); the observed distances (<= {geo.d_max:.3g} mm) are short against "
-                           f"l_d = {ld[c]:.3g} mm")
-        elif hi / lo > identifiable_ratio:
-            ident.append(False)
-            reasons.append(f"channel {c}: the 95% interval of sigma_a spans a factor {hi / lo:.3g} "
-                           f"(> {identifiable_ratio:g}): {lo:.3g}-{hi:.3g} /mm")
-        else:
-            ident.append(True)
-            reasons.append(f"channel {c}: sigma_a within {lo:.3g}-{hi:.3g} /mm (factor {hi / lo:.3g})")
+        ok_c, why = sigma_a_verdict(float(sa_ci[c, 0]), float(sa_ci[c, 1]), identifiable_ratio, one_sided[c])
+        if not ok_c and "floor" in why:
+            why += (f"; the observed distances (<= {geo.d_max:.3g} mm) are short against l_d = {ld[c]:.3g} mm")
+        ident.append(ok_c)
+        reasons.append(f"channel {c}: {why}")
     for c in range(n_ch):
         lo, hi = ssp_ci[c]
         if not (lo > 0 and hi <= identifiable_ratio * lo):
@@ -1969,6 +1961,17 @@ def estimate_single_image(observed_radiance: ArrayLike, patches: Patches, lights
         identifiability_reason="; ".join(reasons), profile_bins_mm=bins, profile_values=prof_vals,
         diagnostics=diag, extra=extra)
 
+
+
+def sigma_a_verdict(lo: float, hi: float, identifiable_ratio: float, one_sided: bool = False) -> tuple[bool, str]:
+    """Is sigma_a identified by its 95 % interval [lo, hi] (per mm)? (verdict, reason): not when the interval
+    reaches the floor / 0 (one-sided) or spans more than a factor ``identifiable_ratio``."""
+    if one_sided or not lo > 0:
+        return False, f"the 95% interval of sigma_a reaches the floor ({lo:.3g}-{hi:.3g} /mm, one-sided)"
+    if hi / lo > identifiable_ratio:
+        return False, (f"the 95% interval of sigma_a spans a factor {hi / lo:.3g} (> {identifiable_ratio:g}): "
+                       f"{lo:.3g}-{hi:.3g} /mm")
+    return True, f"sigma_a within {lo:.3g}-{hi:.3g} /mm (factor {hi / lo:.3g})"
 
 
 def _tikhonov(w: Array, l: Array, lam: float | None, monotone: bool, *, n_data: int | None = None,
