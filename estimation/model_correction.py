@@ -73,9 +73,9 @@ the factor above along the ridge. The reported intervals are therefore widened t
 (:func:`_propagate_intervals`): by max(1, 1/|s|) per parameter, s the last secant slope of G along the path
 (slope 0.6 of the map: x2.5; on a synthetic reference of half the fast model's sensitivity the widened interval
 matches the spread of the fixed point over noise seeds, tests/estimation/test_model_correction.py), the refit's
-own intervals kept in ``extra["interval_propagation"]``. Also measured there and rejected: an Anderson / multisecant step (type II,
-memory 2, capped at the larger of the Picard step and the refit's half-width) extrapolated through the
-non-identified sigma_a of a marble pyramid under a point light to +98 % and ended 17-24 % off (3 of 3 seeds; the
+own intervals kept in ``extra["interval_propagation"]``. Also measured there and rejected: an Anderson /
+multisecant step (type II, memory 2, capped at the larger of the Picard step and the refit's half-width)
+extrapolated through the non-identified sigma_a of a marble pyramid under a point light to +98 % and ended 17-24 % off (3 of 3 seeds; the
 Picard iteration: within 4 %); a per-parameter secant step diverged on the 4096-spp skin1 pyramid (-75 %), whose
 first refit moves sigma_a by +22 points and sigma_s' by -3. A smoothing radius of kappa of 3 patch spacings
 instead of 1.5 shifts G_s at the truth by +11 points (it blurs the edge deficit); equal instead of inverse-variance
@@ -345,15 +345,15 @@ def estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, ligh
 
     ``observed_radiance``, ``noise_sigma``, ``patches``, ``lights``, ``eta`` and ``fit_kwargs`` are those of
     :func:`estimation.single_image.estimate_single_image` (``method`` defaults to "direct"). ``reference`` is
-    called at most ``max_iterations`` times (at least ``min_iterations``), always with ``seed`` (common random numbers; the module docstring);
-    each refit also starts from the point just rendered (``start_per_mm``). Returns the last fit, with ``model``
+    called at most ``max_iterations`` times (at least ``min_iterations``), always with ``seed`` (common random
+    numbers; the module docstring); each refit also starts from the point just rendered (``start_per_mm``). Returns the last fit, with ``model``
     set to ``"<base_model>+reference"`` and ``extra["reference"]`` holding every step (the refit's parameters, the
     point rendered, seconds, the correction's median / 5th / 95th percentile), ``extra["converged"]`` (the last
     refit was estimated close to the fixed point: :func:`_settled`) and ``extra["model_bias"]``, the base
     model's radiance over the reference's at the final parameters. The intervals of sigma_s' and sigma_a are the
     fixed point's: the refit's widened by the map's slope along the path (:func:`_propagate_intervals`;
-    ``extra["interval_propagation"]`` keeps the refit's own and the factors); R_d and l_d keep the refit's. A failed base fit is returned as it is
-    (falsy, its message prefixed); a reference that returns no usable value raises ``ValueError`` naming it.
+    ``extra["interval_propagation"]`` keeps the refit's own and the factors); R_d and l_d keep the refit's. A
+    failed base fit is returned as it is (falsy, its message prefixed); a reference that returns no usable value raises ``ValueError`` naming it.
     """
     if max_iterations < 1:
         raise ValueError("max_iterations must be >= 1")
