@@ -95,12 +95,10 @@ def camera(size_px: int, radius_mm: float) -> PinholeCamera:
 
 
 def make_rig() -> dict[str, Any]:
-    pos, dirs = led_layout(6, 1000.0, -60.0)
+    pos, _ = led_layout(6, 1000.0, -60.0)
     inten = np.full((len(pos), 3), 1000.0)
-    patterns = {"full": np.ones(len(pos))}
-    for i, a in enumerate("xyz"):
-        patterns[a] = 0.5 * (1.0 + dirs[:, i])
     leds = LedRig.from_positions(pos, inten)
+    patterns = {name: leds.pattern_values(name)[:, 0] for name in ("full", "x", "y", "z")}  # ideal drive values
     # the Monte Carlo frames see the LEDs as distant (no near field): the LUT of a surface at the origin
     lut = build_response_lut(leds, eta=ETA, size=33)
     return {"pos": pos, "inten": inten, "patterns": patterns, "leds": leds, "lut": lut}

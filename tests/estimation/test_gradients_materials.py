@@ -66,12 +66,10 @@ def material(name: str) -> tuple[np.ndarray, np.ndarray]:
 @pytest.fixture(scope="module")
 def rig():
     """The default rig's LEDs, the ideal gradient drive values, and the estimator's LUT for a 10 mm object."""
-    pos, dirs = led_layout(6, 1000.0, -60.0)
+    pos, _ = led_layout(6, 1000.0, -60.0)
     inten = np.full((len(pos), 3), 1000.0)
-    patterns = {"full": np.ones(len(pos))}
-    for i, a in enumerate("xyz"):
-        patterns[a] = 0.5 * (1.0 + dirs[:, i])
     leds = LedRig.from_positions(pos, inten)
+    patterns = {name: leds.pattern_values(name)[:, 0] for name in ("full", "x", "y", "z")}  # ideal drive values
     lut = build_response_lut(leds, eta=ETA, size=33, surface_radius_mm=RADIUS_MM)
     return pos, inten, patterns, leds, lut
 

@@ -33,13 +33,10 @@ ALL = ("full", "x", "y", "z", "x_c", "y_c", "z_c")
 
 @pytest.fixture(scope="module")
 def rig():
-    pos, dirs = led_layout(6, 1000.0, -60.0)
+    pos, _ = led_layout(6, 1000.0, -60.0)
     inten = np.full((len(pos), 3), 1000.0)
-    patterns = {"full": np.ones(len(pos))}
-    for i, a in enumerate("xyz"):
-        patterns[a] = 0.5 * (1.0 + dirs[:, i])
-        patterns[a + "_c"] = 0.5 * (1.0 - dirs[:, i])
     leds = LedRig.from_positions(pos, inten)
+    patterns = {name: leds.pattern_values(name)[:, 0] for name in ALL}  # the ideal drive values
     return pos, inten, patterns, leds, build_response_lut(leds, eta=ETA, size=33, surface_radius_mm=10.0)
 
 

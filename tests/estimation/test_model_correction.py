@@ -249,7 +249,7 @@ def test_intervals_are_widened_to_the_fixed_points_spread():
     scatter = float(np.std(logs, ddof=1))
     print(f"scatter of log sigma_s' {scatter:.4f}; interval SD: widened {np.mean(sd_final):.4f}, refit "
           f"{np.mean(sd_refit):.4f}; factors {np.round(factors, 2).tolist()}")
-    assert 1.5 < np.median(factors) < 2.6  # 1/|s| with s ~ -1/2
+    assert 1.8 < np.median(factors) < 2.2  # 1/|s| with s ~ -1/2 (measured 1.96-2.01)
     assert 0.65 < np.mean(sd_final) / scatter < 1.6
     assert np.mean(sd_refit) / scatter < 0.75  # the unwidened interval understates the fixed point's noise
 

@@ -14,6 +14,7 @@ from estimation.fresnel import fresnel_moment
 from estimation.mc_table import default_table, exit_radiance_factor
 from estimation.single_image import (MODELS_ALL, Patches, PointLights, estimate_single_image, model_bias,
                                      patch_irradiance, patches_from_mesh, predict_radiance)
+from test_single_image import _sphere_arrays
 
 CAMERA_MM = np.array([0.0, -300.0, 0.0])
 LED_MM = np.array([[300.0, -900.0, 400.0]])
@@ -24,11 +25,9 @@ SA = np.array([0.0021, 0.032])
 
 
 def _fine_sources(sub: int, radius: float) -> Patches:
-    m = trimesh.creation.icosphere(subdivisions=sub, radius=1.0)
-    n = m.triangles_center / np.linalg.norm(m.triangles_center, axis=1, keepdims=True)
-    n = n @ Rotation.from_euler("xyz", [0.3, 0.7, 0.2]).as_matrix().T
-    a = m.area_faces * (4 * np.pi / m.area_faces.sum()) * radius**2
-    return Patches.from_arrays(n * radius, n, a, CAMERA_MM)
+    """The finer, rotated source tessellation of test_single_image (same rotation)."""
+    return Patches.from_arrays(*_sphere_arrays(sub, radius, Rotation.from_euler("xyz", [0.3, 0.7, 0.2]).as_matrix()),
+                               CAMERA_MM)
 
 
 def synthesize_table(est: Patches, fine: Patches, lights, ssp, sa, eta: float) -> np.ndarray:
