@@ -473,22 +473,24 @@ def light_contribution(kind, prm, nbox, nidx, tris, eps_t, stack, x, y, z, dcx, 
 
 @njit(cache=True, error_model="numpy")
 def _rouletted_contribution(kind, prm, nbox, nidx, tris, eps_t, stack, x, y, z, dcx, dcy, dcz, lx, ly, lz,
-                            sigma_t, g, eta, n_scan, nee_tau, u_rr):
+                            sigma_t, g, eta, n_scan, nee_tau, u_rr, sigma_t_eval):
     """:func:`light_contribution` evaluated with probability q = min(1, exp(-sigma_t l_min) / nee_tau) and
-    divided by q (unbiased); l_min bounds the connection's length inside the medium from below."""
+    divided by q (unbiased); l_min bounds the connection's length inside the medium from below. The connection
+    itself is evaluated at ``sigma_t_eval`` (= ``sigma_t`` except for the derivative estimates of
+    :func:`.walk.walk`, which keep the roulette decision of ``sigma_t`` fixed: it is part of the sampling)."""
     q = min(1.0, math.exp(-sigma_t * min_inside_length(kind, prm, x, y, z, lx, ly, lz, eta)) / nee_tau)
     if not u_rr < q:
         return 0.0
     return light_contribution(kind, prm, nbox, nidx, tris, eps_t, stack, x, y, z, dcx, dcy, dcz, lx, ly, lz,
-                              sigma_t, g, eta, n_scan) / q
+                              sigma_t_eval, g, eta, n_scan) / q
 
 
 @njit(cache=True, error_model="numpy")
 def point_light_nee(kind, prm, nbox, nidx, tris, eps_t, stack, x, y, z, dcx, dcy, dcz, sigma_t, g, eta,
-                    light_pos, light_int, light_cdf, sample_one, n_scan, nee_tau, u_rr, u_pick):
+                    light_pos, light_int, light_cdf, sample_one, n_scan, nee_tau, u_rr, u_pick, sigma_t_eval):
     """Sum over lights (or one light drawn with probability proportional to its intensity, ``sample_one``, using
     ``u_pick``) of I p(cos) E_perp / I, each connection Russian-rouletted with ``u_rr`` (see
-    :func:`_rouletted_contribution`)."""
+    :func:`_rouletted_contribution`) and evaluated at the extinction ``sigma_t_eval`` (normally ``sigma_t``)."""
     n = light_pos.shape[0]
     if n == 0:
         return 0.0
@@ -498,7 +500,7 @@ def point_light_nee(kind, prm, nbox, nidx, tris, eps_t, stack, x, y, z, dcx, dcy
             if light_int[k] > 0.0:
                 tot += light_int[k] * _rouletted_contribution(
                     kind, prm, nbox, nidx, tris, eps_t, stack, x, y, z, dcx, dcy, dcz, light_pos[k, 0],
-                    light_pos[k, 1], light_pos[k, 2], sigma_t, g, eta, n_scan, nee_tau, u_rr)
+                    light_pos[k, 1], light_pos[k, 2], sigma_t, g, eta, n_scan, nee_tau, u_rr, sigma_t_eval)
         return tot
     lo, hi = 0, n - 1
     while lo < hi:
@@ -512,4 +514,4 @@ def point_light_nee(kind, prm, nbox, nidx, tris, eps_t, stack, x, y, z, dcx, dcy
         return 0.0
     return light_int[lo] / pmf * _rouletted_contribution(
         kind, prm, nbox, nidx, tris, eps_t, stack, x, y, z, dcx, dcy, dcz, light_pos[lo, 0], light_pos[lo, 1],
-        light_pos[lo, 2], sigma_t, g, eta, n_scan, nee_tau, u_rr)
+        light_pos[lo, 2], sigma_t, g, eta, n_scan, nee_tau, u_rr, sigma_t_eval)

@@ -65,6 +65,11 @@ class MCImage:
     seconds: float
     mean_collisions: float       # per path
     truncated_fraction: float    # paths stopped by max_collisions (their weight is lost)
+    #: with ``render(..., derivatives=True)``: d radiance / d (log sigma_s, log sigma_a) (H, W, C, 2) from the same
+    #: paths (score-function estimates, :mod:`.walk`; sigma_s is the unreduced scattering coefficient, so at fixed
+    #: g this is also the derivative with respect to log sigma_s'), and its per-pixel standard error; else None
+    d_log_sigma: FloatArray | None = None
+    d_log_sigma_stderr: FloatArray | None = None
 
 
 @njit(cache=True, error_model="numpy")
@@ -89,24 +94,35 @@ def env_radiance(dx, dy, dz, env_map, has_map, aff, has_aff):
 def _trace_path(kind, prm, nbox, nidx, tris, eps_t, nudge, convex, stack, inside, x, y, z, dx, dy, dz, beta, state,
                 sigma_t, albedo, g, eta, rr_weight, rr_survival, max_collisions,
                 light_pos, light_int, light_cdf, sample_one, n_scan, nee_tau,
-                env_map, has_map, aff, has_aff, max_bounces):
+                env_map, has_map, aff, has_aff, max_bounces, want_d):
     """Radiance estimate of one camera path with throughput ``beta`` that starts just inside the medium
     (``inside``) or just outside it, travelling along d. Alternates walks inside and ray segments outside
-    (Fresnel sampled at every hit from outside) until the path escapes, is absorbed or hits ``max_bounces``."""
+    (Fresnel sampled at every hit from outside) until the path escapes, is absorbed or hits ``max_bounces``.
+    Returns (value, d value / d log sigma_s, d value / d log sigma_a, state, collisions, truncated); the two
+    derivatives (score-function estimates, :mod:`.walk`) are 0 unless ``want_d``."""
     value = 0.0
+    v_ds = 0.0
+    v_da = 0.0
     has_env = has_map or has_aff
     e2 = eta * eta
+    sigma_s = sigma_t * albedo
+    sigma_a = sigma_t - sigma_s
     n_coll = 0
+    len_in = 0.0  # path length inside the medium so far
     truncated = False
     just_exited = False
     for _ in range(2 * max_bounces):
         if inside:
-            status, x, y, z, dx, dy, dz, w, nee, state, nc = walk(
+            status, x, y, z, dx, dy, dz, w, nee, state, nc, seg_len, nee_ds, nee_da = walk(
                 kind, prm, nbox, nidx, tris, eps_t, nudge, stack, x, y, z, dx, dy, dz, state,
                 sigma_t, albedo, g, eta, rr_weight, rr_survival, max_collisions,
-                light_pos, light_int, light_cdf, sample_one, n_scan, nee_tau)
+                light_pos, light_int, light_cdf, sample_one, n_scan, nee_tau, want_d, n_coll, len_in)
             n_coll += nc
+            len_in += seg_len
             value += beta * nee
+            if want_d:
+                v_ds += beta * nee_ds
+                v_da += beta * nee_da
             if status != EXITED:
                 truncated = status == TRUNCATED
                 break
@@ -122,7 +138,11 @@ def _trace_path(kind, prm, nbox, nidx, tris, eps_t, nudge, convex, stack, inside
         just_exited = False
         if t == math.inf:
             if has_env:
-                value += beta * env_radiance(dx, dy, dz, env_map, has_map, aff, has_aff)
+                c_env = beta * env_radiance(dx, dy, dz, env_map, has_map, aff, has_aff)
+                value += c_env
+                if want_d:
+                    v_ds += c_env * (n_coll - sigma_s * len_in)
+                    v_da -= c_env * sigma_a * len_in
             break
         x += t * dx
         y += t * dy
@@ -141,15 +161,15 @@ def _trace_path(kind, prm, nbox, nidx, tris, eps_t, nudge, convex, stack, inside
         z -= nudge * nz
         beta /= e2
         inside = True
-    return value, state, n_coll, truncated
+    return value, v_ds, v_da, state, n_coll, truncated
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
 def _render_kernel(origins, dirs, spp, seed, channel, kind, prm, nbox, nidx, tris, eps_t, nudge, convex,
                    sigma_t, albedo, g, eta, rr_weight, rr_survival, max_collisions,
                    light_pos, light_int, light_cdf, sample_one, n_scan, nee_tau,
-                   env_map, has_map, aff, has_aff, include_specular, max_bounces,
-                   out_mean, out_se, out_hit, out_coll, out_trunc):
+                   env_map, has_map, aff, has_aff, include_specular, max_bounces, want_d,
+                   out_mean, out_se, out_hit, out_coll, out_trunc, out_d, out_d_se):
     n_pix = origins.shape[0]
     for p in prange(n_pix):
         stack = np.empty(STACK_SIZE, np.int64)
@@ -160,6 +180,10 @@ def _render_kernel(origins, dirs, spp, seed, channel, kind, prm, nbox, nidx, tri
             out_hit[p] = False
             out_mean[p] = 0.0
             out_se[p] = 0.0
+            if want_d:
+                for q in range(2):
+                    out_d[p, q] = 0.0
+                    out_d_se[p, q] = 0.0
             continue
         out_hit[p] = True
         hx, hy, hz = ox + t * dx, oy + t * dy, oz + t * dz
@@ -174,40 +198,60 @@ def _render_kernel(origins, dirs, spp, seed, channel, kind, prm, nbox, nidx, tri
         beta0 = (1.0 - fr) / (eta * eta)
         mean = 0.0
         m2 = 0.0
+        mean_s = 0.0
+        m2_s = 0.0
+        mean_a = 0.0
+        m2_a = 0.0
         coll = 0
         trunc = 0
         if (ok and beta0 > 0.0) or spec_paths:
             for k in range(spp):
                 state = stream(seed, channel, p, k)
                 val = 0.0
+                val_s = 0.0
+                val_a = 0.0
                 if ok and beta0 > 0.0:
-                    val, state, nc, tr = _trace_path(
+                    val, val_s, val_a, state, nc, tr = _trace_path(
                         kind, prm, nbox, nidx, tris, eps_t, nudge, convex, stack, True,
                         hx - nudge * nx, hy - nudge * ny, hz - nudge * nz, tx, ty, tz, beta0, state,
                         sigma_t, albedo, g, eta, rr_weight, rr_survival, max_collisions,
                         light_pos, light_int, light_cdf, sample_one, n_scan, nee_tau,
-                        env_map, has_map, aff, has_aff, max_bounces)
+                        env_map, has_map, aff, has_aff, max_bounces, want_d)
                     coll += nc
                     if tr:
                         trunc += 1
                 if spec_paths and fr > 0.0:  # non-convex: the mirrored ray may see the object itself
-                    v2, state, nc, tr = _trace_path(
+                    v2, v2_s, v2_a, state, nc, tr = _trace_path(
                         kind, prm, nbox, nidx, tris, eps_t, nudge, convex, stack, False,
                         hx + nudge * nx, hy + nudge * ny, hz + nudge * nz, rx, ry, rz, fr, state,
                         sigma_t, albedo, g, eta, rr_weight, rr_survival, max_collisions,
                         light_pos, light_int, light_cdf, sample_one, n_scan, nee_tau,
-                        env_map, has_map, aff, has_aff, max_bounces)
+                        env_map, has_map, aff, has_aff, max_bounces, want_d)
                     val += v2
+                    val_s += v2_s
+                    val_a += v2_a
                     coll += nc
                     if tr:
                         trunc += 1
                 delta = val - mean
                 mean += delta / (k + 1)
                 m2 += delta * (val - mean)
+                if want_d:
+                    delta = val_s - mean_s
+                    mean_s += delta / (k + 1)
+                    m2_s += delta * (val_s - mean_s)
+                    delta = val_a - mean_a
+                    mean_a += delta / (k + 1)
+                    m2_a += delta * (val_a - mean_a)
         out_mean[p] = mean + spec
         out_se[p] = math.sqrt(m2 / (spp - 1) / spp) if spp > 1 else math.inf
         out_coll[p] = coll
         out_trunc[p] = trunc
+        if want_d:
+            out_d[p, 0] = mean_s
+            out_d[p, 1] = mean_a
+            out_d_se[p, 0] = math.sqrt(m2_s / (spp - 1) / spp) if spp > 1 else math.inf
+            out_d_se[p, 1] = math.sqrt(m2_a / (spp - 1) / spp) if spp > 1 else math.inf
 
 
 def _media_list(media: Medium | Sequence[Medium]) -> list[Medium]:
@@ -222,14 +266,16 @@ def _media_list(media: Medium | Sequence[Medium]) -> list[Medium]:
 def render(shape: Shape, media: Medium | Sequence[Medium], camera: Any, lights: Any, *, spp: int = 64,
            seed: int = 0, include_specular: bool = False, nee_tau: float = 1.0, rr_weight: float = 0.01,
            rr_survival: float = 0.1, max_collisions: int = 1_000_000, max_bounces: int = 64,
-           n_scan: int = 32, max_sampled_lights: int = 8) -> MCImage:
+           n_scan: int = 32, max_sampled_lights: int = 8, derivatives: bool = False) -> MCImage:
     """Render ``shape`` filled with ``media`` (one :class:`Medium` per colour channel, all with the same eta) as
     seen by ``camera`` (anything with ``width_px``, ``height_px``, ``pixel_rays()``: PinholeCamera,
     OrthographicCamera) under ``lights`` (see :mod:`.lights`).
 
     ``spp`` paths per pixel (>= 2 for a standard error). With more than ``max_sampled_lights`` point lights one
     light is drawn per collision with probability proportional to its intensity. ``nee_tau``, ``rr_weight``,
-    ``rr_survival``: variance-only knobs (see :mod:`.walk`). Raises ValueError for a point light inside the
+    ``rr_survival``: variance-only knobs (see :mod:`.walk`). ``derivatives``: also estimate, from the same paths,
+    the derivatives of the radiance with respect to log sigma_s and log sigma_a of each channel's medium
+    (``MCImage.d_log_sigma``; perturbation Monte Carlo, :mod:`.walk`; point-light connections cost twice). Raises ValueError for a point light inside the
     object, for media with different eta, or for point lights with a non-convex mesh and eta != 1 (not supported:
     refracted connections are found face by face, which needs every face that faces the light to see it).
     """
@@ -256,6 +302,9 @@ def render(shape: Shape, media: Medium | Sequence[Medium], camera: Any, lights: 
     n = len(o)
     rad = np.zeros((n, len(ms)))
     se = np.zeros((n, len(ms)))
+    want_d = bool(derivatives)
+    d_all = np.zeros((n, len(ms), 2)) if want_d else None
+    d_se_all = np.zeros((n, len(ms), 2)) if want_d else None
     hit = np.zeros(n, dtype=np.bool_)
     coll = np.zeros(n, dtype=np.int64)
     trunc = np.zeros(n, dtype=np.int64)
@@ -265,18 +314,25 @@ def render(shape: Shape, media: Medium | Sequence[Medium], camera: Any, lights: 
     for c, (m, L) in enumerate(zip(ms, kl)):
         mean_c = np.zeros(n)
         se_c = np.zeros(n)
+        d_c = np.zeros((n if want_d else 1, 2))
+        d_se_c = np.zeros((n if want_d else 1, 2))
         sample_one = len(L.positions_mm) > max_sampled_lights
         _render_kernel(o, d, int(spp), int(seed), c, geo.kind, geo.params, geo.nodes_box, geo.nodes_idx,
                        geo.triangles, geo.eps_t, geo.nudge, geo.convex, m.sigma_t_per_mm, m.albedo, m.g, m.eta,
                        float(rr_weight), float(rr_survival), int(max_collisions),
                        L.positions_mm, L.intensity, L.cdf, sample_one, int(n_scan), float(nee_tau),
                        L.env_map, L.has_map, L.affine, L.has_affine, bool(include_specular), int(max_bounces),
-                       mean_c, se_c, hit, coll, trunc)
+                       want_d, mean_c, se_c, hit, coll, trunc, d_c, d_se_c)
         rad[:, c] = mean_c
         se[:, c] = se_c
+        if want_d:
+            d_all[:, c] = d_c
+            d_se_all[:, c] = d_se_c
         tot_coll += int(coll.sum())
         tot_trunc += int(trunc.sum())
     seconds = time.perf_counter() - t0
     n_paths = max(1, int(hit.sum()) * spp * len(ms))
     return MCImage(rad.reshape(h, w, -1), se.reshape(h, w, -1), hit.reshape(h, w), int(spp), int(seed), seconds,
-                   tot_coll / n_paths, tot_trunc / n_paths)
+                   tot_coll / n_paths, tot_trunc / n_paths,
+                   None if d_all is None else d_all.reshape(h, w, len(ms), 2),
+                   None if d_se_all is None else d_se_all.reshape(h, w, len(ms), 2))
