@@ -13,6 +13,7 @@ from .far_field import (EXACT_PAIR_BUDGET, EXACT_PAIR_BUDGET_BINNED, FAR_FIELD_M
                         FAR_FIELD_THETA_BINNED, _NODE_RATIO, _cubic_log_basis, _Geometry, _hat_basis, _log_grid,
                         quantization_weights)
 from .fit import _Z95, _ChannelFit, _fit_channel, _Problem, _reduce, _tikhonov
+from .weights import fit_direct_channel
 from .geometry import Lights, Patches, patch_irradiance
 from .models import (_binned_profile, _cutoff, _derived_intervals, _disk_batch, _exit_normalization,
                      _profile_batch, _reflectance, check_model, model_bias)
@@ -97,7 +98,9 @@ def estimate_single_image(observed_radiance: ArrayLike, patches: Patches, lights
                           regularization: float | None = None, profile_likelihood: bool = True,
                           identifiable_ratio: float = 10.0, model_error: float = 0.02,
                           fdr: str = "fit", far_field: str = "auto", far_field_theta: float | None = None,
-                          start_per_mm: ArrayLike | None = None
+                          start_per_mm: ArrayLike | None = None, robust: bool = True,
+                          data_slope: ArrayLike | None = None, slope_ref_per_mm: ArrayLike | None = None,
+                          search_box_per_mm: ArrayLike | None = None
                           ) -> SingleImageResult:
     """Estimate (sigma_s', sigma_a) per channel from one image (Mukaigawa et al. 2009, and better).
 
@@ -136,6 +139,15 @@ def estimate_single_image(observed_radiance: ArrayLike, patches: Patches, lights
         :data:`FAR_FIELD_THETA` = 0.35 for "direct" (rms error of l 0.02-0.04 % on long profiles, ~0.15 % on short
         ones; 0.5: rms 0.1-0.3 % at ~0.6x the cost), :data:`FAR_FIELD_THETA_BINNED` = 0.2 for the binned methods.
         "auto" sums every pair for the binned methods up to :data:`EXACT_PAIR_BUDGET_BINNED` pairs.
+    robust : Huber loss on the normalized residuals of the direct method (:mod:`.weights`: single outliers such
+        as Monte Carlo fireflies or hot pixels cannot steer the fit); the binned methods are linear solves and
+        take the weights as given.
+    data_slope, slope_ref_per_mm : optional (m or K, C, 2) and (C, 2) / (2,): observations that move with the
+        parameters, observed - data_slope . phi(theta), phi = r tanh((theta - log slope_ref) / r) per channel in
+        log (sigma_s', sigma_a) (:class:`.fit._Problem`; the reference-corrected fit's first-order defect
+        correction, :mod:`estimation.model_correction`). "direct" only.
+    search_box_per_mm : optional (2, 2) or (C, 2, 2): [[sigma_s'_lo, sigma_a_lo], [sigma_s'_hi, sigma_a_hi]] per
+        channel; the optimum is searched inside (a trust region); intervals span the whole range. "direct" only.
     start_per_mm : optional (sigma_s', sigma_a) per channel, (2,) or (C, 2): one more start of the fit beside the
         best grid points (e.g. the previous iterate of :func:`estimation.model_correction.estimate_with_reference`).
 
@@ -199,6 +211,33 @@ def estimate_single_image(observed_radiance: ArrayLike, patches: Patches, lights
             raise ValueError(f"start_per_mm must be positive finite (sigma_s', sigma_a), shape (2,) or ({n_ch}, 2); "
                              f"got shape {st.shape}")
         hints = list(np.log(np.broadcast_to(st, (n_ch, 2))))
+    if (data_slope is not None or search_box_per_mm is not None) and method != "direct":
+        raise ValueError("data_slope and search_box_per_mm need method='direct'")
+    slope_obs = ref_log = None
+    if data_slope is not None:
+        sl = np.asarray(data_slope, dtype=np.float64)
+        if sl.ndim == 2:
+            sl = sl[:, None, :]
+        if sl.shape[0] == k_all and k_all != vis.size:
+            sl = sl[vis]
+        if sl.ndim != 3 or sl.shape[0] != vis.size or sl.shape[2] != 2 or sl.shape[1] not in (1, n_ch):
+            raise ValueError(f"data_slope has shape {np.shape(data_slope)}; expected ({vis.size} or {k_all}, {n_ch}, 2)")
+        if slope_ref_per_mm is None:
+            raise ValueError("data_slope needs slope_ref_per_mm (the parameters it was taken at)")
+        ref = np.asarray(slope_ref_per_mm, dtype=np.float64)
+        if ref.shape not in ((2,), (n_ch, 2)) or not np.all(np.isfinite(ref)) or np.any(ref <= 0):
+            raise ValueError(f"slope_ref_per_mm must be positive finite, shape (2,) or ({n_ch}, 2)")
+        slope_obs = np.broadcast_to(np.nan_to_num(sl), (vis.size, n_ch, 2))
+        ref_log = np.log(np.broadcast_to(ref, (n_ch, 2)))
+        valid &= np.all(np.isfinite(np.broadcast_to(sl, (vis.size, n_ch, 2))), axis=2)
+    boxes: list[tuple[Array, Array] | None] = [None] * n_ch
+    if search_box_per_mm is not None:
+        bx = np.asarray(search_box_per_mm, dtype=np.float64)
+        if bx.shape not in ((2, 2), (n_ch, 2, 2)) or not np.all(bx > 0) or np.any(bx[..., 0, :] >= bx[..., 1, :]):
+            raise ValueError(f"search_box_per_mm must be positive [[lo_s, lo_a], [hi_s, hi_a]] with lo < hi, shape (2, 2) "
+                             f"or ({n_ch}, 2, 2); got {bx.tolist()}")
+        bx = np.log(np.broadcast_to(bx, (n_ch, 2, 2)))
+        boxes = [(bx[c, 0], bx[c, 1]) for c in range(n_ch)]
     l_obs = np.where(valid, np.pi * c_exit * np.nan_to_num(obs) / np.where(ft > 1e-6, ft, 1.0)[:, None], 0.0)
     if not np.any(valid.sum(0) >= 3):
         return _failure("fewer than 3 valid observations in every channel", method, model, eta_f, t0)
@@ -277,6 +316,7 @@ def estimate_single_image(observed_radiance: ArrayLike, patches: Patches, lights
     prof_vals = np.full((bins.size, n_ch), np.nan)
     lambdas = np.full(n_ch, np.nan)
     jac_conds = np.full(n_ch, np.nan)
+    downweighted = np.full(n_ch, 0.0)
     nfev = 0
     for c in range(n_ch):
         ok = valid[:, c]
@@ -288,33 +328,27 @@ def estimate_single_image(observed_radiance: ArrayLike, patches: Patches, lights
         l_c = l_obs[ok, c]
         if not np.any(l_c != 0):
             return _failure(f"channel {c}: all observed radiances are 0", method, model, eta_f, t0)
-        if sig is not None:
-            w_obs = (ft[ok] / (np.pi * c_exit * sig[ok, c]))  # sigma of l = pi c sigma_L / F_t
+        sig_l = None if sig is None else np.pi * c_exit * sig[ok, c] / ft[ok]  # sigma of l = pi c sigma_L / F_t
+        if sig_l is not None:
+            w_obs = 1.0 / np.sqrt(sig_l ** 2 + (model_error * l_c) ** 2)
         else:
             w_obs = 1.0 / (np.abs(l_c) + noise_floor * np.max(np.abs(l_c)))
         if method == "direct":
+            # weights from the first fit's prediction (data-based weights correlate with the noise: noisy-low pixels
+            # would get large weights), Huber reweighting, the final fit (:mod:`.weights`)
             w_tot = mats[c][ok]
-            if sig is None:
-                # relative weights from the data correlate with its noise (noisy-low pixels get large weights,
-                # a bias at high noise); one reweighting step takes them from the first fit's prediction instead
-                # (the first fit only sets the weights, so it skips the trust-region polish, ~0.7 ms: measured over
-                # 11 sphere scenes, 1-3 channels, 0-20 % noise, the multistart's point differs from the polished one
-                # by <= 5e-13 in log parameters and the final parameters by <= 2e-11 relative)
-                first = _fit_channel(_Problem.weighted(vector_fn, w_tot, l_c, w_obs), sigma_a_floor_per_mm,
-                                     profile=False, model_error=model_error, start_hint=hints[c], polish=False)
-                if np.all(np.isfinite(first.theta)):
-                    pred0 = np.abs(w_tot @ vector_fn(first.theta[None, :])[:, 0])
-                    if np.max(pred0) > 0:
-                        w_obs = 1.0 / (pred0 + noise_floor * np.max(pred0))
-                nfev += first.nfev
-            problem = _Problem.weighted(vector_fn, w_tot, l_c, w_obs)
-            fit = _fit_channel(problem, sigma_a_floor_per_mm, known_noise=sig is not None, profile=profile_likelihood,
-                               model_error=model_error, start_hint=hints[c])
+            sl_c = None if slope_obs is None else (np.pi * c_exit / ft[ok])[:, None] * slope_obs[ok, c]
+            wf = fit_direct_channel(vector_fn, w_tot, l_c, sig_l, sa_floor=sigma_a_floor_per_mm,
+                                    model_error=model_error, noise_floor=noise_floor, robust=robust,
+                                    profile=profile_likelihood, start_hint=hints[c], slope=sl_c,
+                                    theta_ref=None if ref_log is None else ref_log[c], box=boxes[c])
+            fit = wf.fit
+            nfev += wf.nfev_extra
             jac_conds[c] = fit.jac_cond
+            downweighted[c] = float(np.mean(wf.robust_weight < 1.0))
             if np.all(np.isfinite(fit.theta)):
                 prof_vals[:, c] = _profile_batch(model, eta_f, fdr, fit.theta[None, :], bins)[:, 0]
-                pred = w_tot @ vector_fn(fit.theta[None, :])[:, 0]
-                rel_rms[c] = float(np.sqrt(np.mean(((pred - l_c) / np.where(l_c != 0, l_c, 1)) ** 2)))
+                rel_rms[c] = float(np.sqrt(np.mean(((wf.pred - l_c) / np.where(l_c != 0, l_c, 1)) ** 2)))
                 res_rms[c] = float(np.sqrt(fit.ssr / l_c.size))
         else:
             w_c = w_full[c][ok]
@@ -417,7 +451,12 @@ def estimate_single_image(observed_radiance: ArrayLike, patches: Patches, lights
     extra = {"far_field": geo.far_field, "far_field_theta": geo.theta if geo.far_field == "clustered" else None,
              "far_terms": int(geo.n_far_terms), "near_pairs": int(geo.near_j.size),
              "seconds_system": float(t_system), "seconds_fit": float(seconds - t_system),
-             "exit_normalization": float(c_exit), "model_bias": model_bias(ssp, sa, eta_f, model, fdr=fdr)}
+             "exit_normalization": float(c_exit), "model_bias": model_bias(ssp, sa, eta_f, model, fdr=fdr),
+             "noise_model": {"weights": ("stated sigma and a relative model error" if sig is not None else
+                                         "relative (model error only; noise level from the residuals)"),
+                             "model_error": float(model_error),
+                             "robust": "huber" if (robust and method == "direct") else None,
+                             "downweighted_fraction": downweighted.tolist()}}
     return SingleImageResult(
         True, "ok" if not notes else "; ".join(notes), method, model, eta_f,
         sigma_s_prime_per_mm=ssp, sigma_a_per_mm=sa, R_d=np.asarray(rd), l_d_mm=np.asarray(ld), D_mm=np.asarray(D),

@@ -46,36 +46,79 @@ def _reduce(a: Array, b: Array) -> tuple[Array, Array, float]:
     return np.ascontiguousarray(np.triu(r[:n, :n])), r[:n, n].copy(), float(r[n, n] ** 2)
 
 
+#: the data correction of :meth:`_Problem.weighted` (``slope``) is linear in theta - theta_ref up to about this
+#: distance in log parameters and saturates beyond it (phi = r tanh((theta - theta_ref) / r)): a first-order
+#: correction learnt at one point is not extrapolated over decades (e.g. by the sigma_a profile scan)
+CORRECTION_SATURATION_LOG = 1.0
+
+
+def _reduce_affine(a: Array, b: Array, c: Array) -> tuple[Array, Array, Array]:
+    """QR reduction of ||a v - b + c phi|| over (v, phi): (R_a, r_b, R_c) with ||a v - b + c phi|| =
+    ||R_a v - r_b + R_c phi|| for every v and phi (one Householder QR of [a | b | c], as :func:`_reduce`)."""
+    m, n = a.shape
+    k = c.shape[1]
+    x = np.empty((m, n + 1 + k), order="F")
+    x[:, :n] = a
+    x[:, n] = b
+    x[:, n + 1:] = c
+    if m <= n + 1 + k:
+        return a, b, c
+    r = np.triu(lapack.dgeqrt(min(32, n + 1 + k), x, overwrite_a=1)[0][:n + 1 + k])
+    return np.ascontiguousarray(r[:, :n]), r[:, n].copy(), np.ascontiguousarray(r[:, n + 1:])
+
+
 class _Problem:
-    """SSR(theta) = ||a v(theta) - b||^2 + offset for a batch of log parameters theta (T, 2).
+    """SSR(theta) = ||a v(theta) - b + lin phi(theta)||^2 + offset for a batch of log parameters theta (T, 2).
 
     ``vector_fn(theta) -> (n, T)`` gives the model's unknowns (profile or disk-integral values at nodes); ``a``
     (None = identity) and ``b`` are the weighted system, usually its QR reduction (:func:`_reduce`).
     ``n_data`` counts the data (degrees of freedom) and ``weighted_data`` holds w * data (the model-error floor).
+    ``lin`` (n, 2), optional: a data term linear in phi(theta) = r tanh((theta - theta_ref) / r) (r =
+    :data:`CORRECTION_SATURATION_LOG`), i.e. data that move with the parameters to first order near theta_ref
+    (the reference-corrected fit's defect correction, :mod:`estimation.model_correction`).
     """
 
     def __init__(self, vector_fn: Any, a: Array | None, b: Array, n_data: int, weighted_data: Array,
-                 offset: float = 0.0) -> None:
+                 offset: float = 0.0, lin: Array | None = None, theta_ref: Array | None = None) -> None:
         self.vector_fn = vector_fn
         self.a = a
         self.b = b
         self.n_data = int(n_data)
         self.weighted_data = weighted_data
         self.offset = float(offset)
+        self.lin = lin
+        self.theta_ref = None if theta_ref is None else np.asarray(theta_ref, dtype=np.float64).reshape(2)
         self.nfev = 0
 
     @classmethod
-    def weighted(cls, vector_fn: Any, matrix: Array, data: Array, weights: Array) -> "_Problem":
-        """min || w (matrix v(theta) - data) ||, reduced by QR."""
+    def weighted(cls, vector_fn: Any, matrix: Array, data: Array, weights: Array, slope: Array | None = None,
+                 theta_ref: Array | None = None) -> "_Problem":
+        """min || w (matrix v(theta) - (data - slope phi(theta))) ||, reduced by QR; ``slope`` (m, 2) is the
+        derivative of the data with respect to phi (None: fixed data)."""
         wd = data * weights
-        a, b, off = _reduce(matrix * weights[:, None], wd)
-        return cls(vector_fn, a, b, data.size, wd, off)
+        if slope is None:
+            a, b, off = _reduce(matrix * weights[:, None], wd)
+            return cls(vector_fn, a, b, data.size, wd, off)
+        if theta_ref is None:
+            raise ValueError("a data slope needs its reference point theta_ref")
+        a, b, lin = _reduce_affine(matrix * weights[:, None], wd, np.asarray(slope) * weights[:, None])
+        return cls(vector_fn, a, b, data.size, wd, 0.0, lin, theta_ref)
+
+    def phi(self, t: Array) -> Array:
+        """phi(theta) (T, 2) of :class:`_Problem` (0 without a data slope)."""
+        if self.theta_ref is None:
+            return np.zeros_like(t)
+        r = CORRECTION_SATURATION_LOG
+        return r * np.tanh((t - self.theta_ref[None, :]) / r)
 
     def resid(self, theta: Array) -> Array:
         t = np.atleast_2d(theta)
         self.nfev += t.shape[0]
         v = self.vector_fn(t)
-        return (v if self.a is None else self.a @ v) - self.b[:, None]
+        out = (v if self.a is None else self.a @ v) - self.b[:, None]
+        if self.lin is not None:
+            out = out + self.lin @ self.phi(t).T
+        return out
 
     def jacobian(self, theta: Array) -> Array:
         """d resid / d theta (n, 2) by central differences, all four points in one batched evaluation."""
@@ -92,7 +135,6 @@ class _Problem:
     def ssr(self, theta: Array) -> Array:
         r = self.resid(theta)
         return np.einsum("nt,nt->t", r, r) + self.offset
-
 
 
 def _golden_batch(f: Any, lo: Array, hi: Array, iters: int = 32) -> tuple[Array, Array]:
@@ -314,7 +356,7 @@ class _ChannelFit:
 
 def _fit_channel(problem: _Problem, sa_floor: float, n_params_dof: int = 2, known_noise: bool = False,
                  profile: bool = True, model_error: float = 0.0, start_hint: Array | None = None,
-                 polish: bool = True) -> _ChannelFit:
+                 polish: bool = True, box: tuple[Array, Array] | None = None) -> _ChannelFit:
     """Grid start + bounded least squares in (log sigma_s', log sigma_a); Wald covariance and sigma_a profile.
 
     Every start (best grid point, +-2 in log sigma_a, up to 4 other local minima of the grid, ``start_hint``) runs
@@ -325,21 +367,30 @@ def _fit_channel(problem: _Problem, sa_floor: float, n_params_dof: int = 2, know
     (~14.5 ms; the profile scan 2.8 of it, was 4.7); parameters equal to 1e-9 relative, sigma_a interval ends to
     1e-7 (<= 7e-6 over 1- and 3-channel sky / LED scenes with 0-20 % noise).
 
-    The residual scale is s^2 = SSR/dof (or 1 for known noise), floored so that the 95 % thresholds are never
-    tighter than a relative model error ``model_error`` on every datum: Delta SSR >= sum (model_error * data *
-    weight)^2, i.e. parameters whose best-fit predictions differ by less than that rms are not distinguished.
+    The residual scale is s^2 = SSR/dof; for known noise max(1, SSR/dof) (the stated noise, or more when the
+    residuals say the model or the noise figure is off: never narrower than the misfit warrants), floored so
+    that the 95 % thresholds are never tighter than a relative model error ``model_error`` on every datum:
+    Delta SSR >= sum (model_error * data * weight)^2, i.e. parameters whose best-fit predictions differ by less
+    than that rms are not distinguished.
+
+    ``box`` (lo, hi) in log parameters, optional: the minimum is searched inside it only (a trust region of the
+    reference-corrected fit); the covariance and the sigma_a profile are those of the whole parameter range.
     """
-    lb = np.array([_LOG_SSP_BOUNDS[0], np.log(sa_floor)])
-    ub = np.array([_LOG_SSP_BOUNDS[1], _LOG_SA_MAX])
+    lb_all = np.array([_LOG_SSP_BOUNDS[0], np.log(sa_floor)])
+    ub_all = np.array([_LOG_SSP_BOUNDS[1], _LOG_SA_MAX])
+    lb, ub = lb_all, ub_all
+    if box is not None:
+        lb = np.clip(np.maximum(lb_all, np.asarray(box[0], dtype=np.float64)), lb_all, ub_all)
+        ub = np.clip(np.minimum(ub_all, np.asarray(box[1], dtype=np.float64)), lb, ub_all)
     # coarse grid (one batched evaluation), then trust-region least squares with bounds
     g_s = np.linspace(np.log(0.01), np.log(100.0), 21)
-    g_a = np.linspace(max(np.log(1e-6), lb[1]), np.log(10.0), 21)
+    g_a = np.linspace(max(np.log(1e-6), lb_all[1]), np.log(10.0), 21)
     grid = np.array(np.meshgrid(g_s, g_a, indexing="ij")).reshape(2, -1).T
     ssr_grid = problem.ssr(grid)
     if not np.any(np.isfinite(ssr_grid)):
         return _ChannelFit(np.full(2, np.nan), np.full((2, 2), np.nan), np.nan, np.nan, problem.nfev, np.nan,
                            (np.nan, np.nan), False, False, "model evaluation is not finite on the start grid")
-    x0 = grid[int(np.nanargmin(ssr_grid))]
+    x0 = np.clip(grid[int(np.nanargmin(ssr_grid))], lb, ub)
     starts = [x0, np.clip(x0 + np.array([0.0, 2.0]), lb, ub), np.clip(x0 - np.array([0.0, 2.0]), lb, ub)]
     # other basins: every local minimum of the grid (8-neighbourhood), best first, up to 4 more starts (measured: on
     # a 14 mm pyramid of skin1-R under an environment map the best grid point leads to a minimum with sigma_a at
@@ -378,7 +429,7 @@ def _fit_channel(problem: _Problem, sa_floor: float, n_params_dof: int = 2, know
             theta, cost, J = res.x, float(res.cost), res.jac
     ssr_min = 2.0 * cost + problem.offset
     dof = max(problem.n_data - n_params_dof, 1)
-    s2 = 1.0 if known_noise else max(ssr_min / dof, 1e-300)
+    s2 = max(ssr_min / dof, 1.0 if known_noise else 1e-300)
     if model_error > 0:
         s2 = max(s2, float(np.sum((model_error * problem.weighted_data) ** 2)) / _CHI2_1_95)
     try:
@@ -390,7 +441,7 @@ def _fit_channel(problem: _Problem, sa_floor: float, n_params_dof: int = 2, know
     ci = (np.nan, np.nan)
     one_sided = False
     if profile:
-        ci, one_sided = _profile_sigma_a(problem, theta, ssr_min, s2, lb, ub)
+        ci, one_sided = _profile_sigma_a(problem, theta, ssr_min, s2, lb_all, ub_all)
     return _ChannelFit(theta, cov, ssr_min, s2, problem.nfev, jac_cond, ci, one_sided, ok, msg)
 
 
