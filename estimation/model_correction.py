@@ -1,131 +1,120 @@
 """Single-image estimates corrected by a reference renderer of the scene (analysis by synthesis).
 
 Every profile model of :mod:`.single_image` — the dipoles and the Monte Carlo half-space table — predicts the
-radiance of patch j as a sum over the other patches of a *flat, semi-infinite* profile R(|x_j - x_k|). On a
-body whose size is comparable to the diffusion length the light does not behave like that: at a convex edge of
-a cube, light that would diffuse on through the half-space beyond the edge leaves through the neighbouring face
-instead. Measured on Monte Carlo frames of the seed's Table-1 material (marble-R, a 20 mm cube, one point
-light; ``benchmarks/mc_single_image.py``): the table's prediction at the true parameters is right to 0.6 % more
-than 5 mm from an edge but ~6 % off within 1 mm of one, and because nearly all the information about
-sigma_s' sits near the edges (diffusion length ~8.7 mm), the table fit misses sigma_s' by -37 % and sigma_a by
--50 %.
+radiance of patch j as a sum over the other patches of a *flat, semi-infinite* profile R(|x_j - x_k|), with a
+separable angular factor. On a body whose size is comparable to the diffusion length, near convex edges, behind a
+face the light does not reach directly, or at an index-matched boundary (eta = 1, where low-order scattering is far
+from Lambertian: measured on a 100 mm box of skin1-G, 18-53 % more radiance than the table predicts at oblique
+light and view), the light does not behave like that. This module removes that model error with a *reference
+renderer* that simulates the measurement (full light transport in the known geometry, the same camera, the same
+sampling of the image at the patches), in the spirit of analysis-by-synthesis inverse rendering (Gkioulekas et al.
+2013, "Inverse volume rendering with material dictionaries", ACM TOG 32(6), who fit Monte Carlo renders and their
+parameter derivatives to photographs).
 
-This module removes that bias with a *reference renderer* that simulates the measurement — full light
-transport in the known geometry, the same camera and the same sampling of the image at the patches — and a
-multiplicative defect correction (a fixed-point iteration, as in analysis-by-synthesis inverse rendering;
-Gkioulekas et al. 2013, "Inverse volume rendering with material dictionaries", ACM TOG 32(6), use Monte
-Carlo renderings in the same role):
+The estimate is the maximum-likelihood fit of the *reference* Q(theta) to the observations l (theta = log
+(sigma_s', sigma_a) per channel), found by a trust-region Gauss-Newton iteration in which the fast model M(theta)
+(``base_model``, default ``"mc-table"``) supplies the nonlinearity between renders:
 
-1. fit the fast model (``base_model``, default ``"mc-table"``): parameters p_0 = F(start);
-2. render the reference at the current point p_i: radiance Q(p_i) and its standard error per observed patch; the
-   fast model's prediction M(p_i); the correction kappa_i = Q(p_i) / M(p_i) per patch and channel, averaged over
-   the neighbouring patches within ``smooth_spacings`` patch spacings whose normals differ by less than 25 deg
-   (inverse-variance weights: the edge deficit varies over millimetres, the Monte Carlo noise from patch to
-   patch);
-3. refit the fast model to the corrected observations l / kappa_i (their standard error grows by kappa's):
-   F(p_i). The next render point is p_i + lambda (F(p_i) - p_i) in log parameters (a relaxed Picard step),
-   lambda = 1 per parameter, halved (down to 1/4) whenever that parameter's step reverses sign: the map
-   overshoots on cubes (slope about -0.4 to -1 in sigma_s', a 2-cycle without relaxation).
+1. fit the fast model: theta_0 (the plain estimate);
+2. render the reference at the current point theta_i: Q, its standard error and, when the reference provides them,
+   its derivatives Q' = dQ/dtheta from the same paths (:func:`simulators.mc.render` with ``derivatives=True``:
+   perturbation Monte Carlo); evaluate the fast model M and its derivatives M' there;
+3. build the corrected model, exact to first order at theta_i:
 
-Stop when the last refit is close to the fixed point in every parameter: its estimated distance, |G| |1 + s| / |s|
-for the step G = F(p_i) - p_i and the secant slope s = (G_i - G_{i-1}) / (p_i - p_{i-1}) of G along the path
-(|G| after the first render; the error estimate of Aitken's delta-squared process, s clipped to [-2, -0.1]), is
-below ``rel_tol`` or below a quarter of the refit's standard error (its 95 % half-width / 1.96; in log for a
-two-sided interval, in sigma_a itself for a one-sided profile interval [0, hi], whose log-width is infinite:
-such a parameter used to count as settled at once) — or after ``max_iterations`` renders; the result is the last
-refit. The former rule compared |G| itself with a quarter of the half-width; on a map of slope 0.6 the refit is
-then still 1.5 steps from the fixed point, and it stopped a 4096-spp skin1 pyramid (below) at +16 % whose
-fixed point is +4 %. Every render uses the same ``seed`` (common random numbers, a sample-average
-approximation): the reference is then one fixed realisation, the iteration converges to its fixed point instead
-of wandering with fresh noise, and that realisation's noise enters the refit's intervals through the corrected
-standard errors.
+       F_i(theta) = kappa M(theta) + a + D phi(theta - theta_i),   D = Q' - kappa M',
 
-If the observations are Q(p_true) plus noise, p_true is a fixed point up to that noise: kappa(p_true) makes the
-fast model exact there. Measured on the 20 mm marble-R cube at 128 x 128 px (``benchmarks/mc_single_image.py``,
-128-spp references of 17-28 s each on 2 shared cores): sigma_s' -36.8 % -> +18.8 % -> -1.5 % -> 0.0 %, sigma_a
--50 % -> -23 % -> -8.7 % -> -5.5 %, settled after 3 renders (secant slopes of G of about -1.2 in sigma_s', where the map overshoots,
-and -0.8 in sigma_a put the last refit ~1 % from the fixed point); the former stopping rule rendered once more
-(+1.0 %, -4.2 %).
+   per patch: multiplicative (kappa = Q / M, a = 0) where the render has signal (Q above 5 standard errors and M > 0),
+   additive (kappa = 1, a = Q - M) where it has not — a patch the light does not reach, whose render is noise around
+   zero, is never divided by (this is how the former defect-correction loop collapsed: kappa 0.008-0.09 on an unlit
+   face, sigma_s' -97 %, "converged"). kappa, a and D are averaged over neighbouring patches of the same face (within
+   ``smooth_spacings`` patch spacings; kappa with inverse-variance weights). phi saturates the linear term beyond
+   one unit of log (:data:`estimation.single_image.fit.CORRECTION_SATURATION_LOG`);
+4. fit F_i to l inside the trust region theta_i +- Delta (per channel and parameter; the fast fit with the data
+   slope D / kappa, :func:`estimation.single_image.estimate_single_image`): theta_fit;
+5. render at theta_fit; the step is accepted where the reference's robust objective (Huber, on the observations
+   normalized by a fixed metric) fell by at least a quarter of what F_i predicted (rho >= 1/4: the classical trust-
+   region ratio test; Conn, Gould, Toint 2000, "Trust-region methods", ch. 6); Delta grows x2 after a good step
+   that reached its boundary and shrinks to a quarter of the step after a poor one; a rejected step keeps the old
+   render and its correction and is re-solved in the smaller region without a new render.
 
-How far the noise moves the fixed point depends on the scene. Linearised, F(p) - p = (M'^+ Q') (p* - p) +
-noise, with M' and Q' the sensitivities of the fast model and of the reference to log p: the slope of the map is
-dF/dp = I - M'^+ Q', and the fixed point is off by (M'^+ Q')^-1 times the refit's noise. Where the reference
-responds to a parameter as the fast model does, that factor is 1; where it responds less, the iteration is slow
-and the fixed point noisy. Measured on the 14 mm skin1-R pyramid under a sky map (64 x 64 px,
-``tests/simulators/test_mc_frames_single_image.py``; forward differences of 8 % in log p at the truth, 4096-spp
-frame, 1024-spp references): dF/dp = [[1.0, -0.4], [1.0, -0.4]] in (log sigma_s', log sigma_a) (entries 0.97-1.06
-and -0.31 to -0.42 over 3 frame and 2 reference seeds) —
-the refits move along the ridge of nearly constant albedo, where the map's slope is 0.6, and the fixed-point
-error in log sigma_s' is ~3.5 G_s - G_a ~ 2 G_s for the refit's error G at the truth (G_a ~ 1.5 G_s along the
-ridge), more once it is nonlinear. The standard deviation of G_s at the truth is ~0.05 from a 256-spp frame's
-noise (3 frame seeds) and 0.08 from a 128-spp reference's (8 reference seeds; 0.03 at 1024 spp). Fixed points
-reached (sigma_s' error, frame seeds 1, 2, 3; steps of seed 1):
+It stops — *converged* — when an accepted point's refit moves every parameter by less than a quarter of its
+standard error (a one-sided sigma_a interval [0, hi] on its linear scale). At that point F_i matches the reference
+in value and slope, so the refit is a stationary point of the reference's own likelihood, and its intervals —
+computed from F_i's Jacobian, i.e. Q' — are those of the reference model, widened by nothing. Without
+derivatives from the reference (D = 0: the plain defect correction), the fixed point's noise is amplified by the map
+p -> F(p) (slope ~0.6 measured on a skin1 pyramid), so the intervals are widened by max(1, 1/|s|), s the secant slope
+of F(p) - p along the path (x2 when not measured).
 
-| frame / reference spp | sigma_s' at the end | renders | seed 1 path |
-|---|---|---|---|
-| 256 / 128 | -42, -35, -56 % | 8, 8 (not settled), 7 | +24, +7.9, -6.0, -16, -26, -33, -37, -41, -42 % |
-| 256 / 1024 | -1.6, +13.5, -29 % (still drifting) | 5, 4, 8 | +24, +21, +11, +4.0, +0.4, -1.6 % |
-| 4096 / 1024 | +3.5, 0.0, +4.7 % | 6, 5, 5 | +30, +26, +16, +11, +6.3, +3.9, +3.5 % |
+Never confident and wrong: every result carries ``extra["status"]`` per parameter and channel — "ok" only when the
+iteration converged and the interval is finite and narrower than :data:`MAX_OK_INTERVAL_RATIO` (sigma_s') or
+sigma_a is identifiable; "weak" otherwise, with the reason in ``extra["status_reasons"]``. A result that did not
+converge within ``max_iterations`` renders is the last accepted refit, its intervals widened to hold the whole
+last step (the distance still to go can be as large again), flagged weak. Numerical warnings are not emitted.
 
-So the iteration converges there; at 256-spp frames the scene does not hold sigma_s' to 10 %. The refit's 95 %
-interval (0.26-1.27 of the truth at the end of the 256/128 run, seed 1) is computed from M', not Q', and is too narrow by
-the factor above along the ridge. The reported intervals are therefore widened to the fixed point's
-(:func:`_propagate_intervals`): by max(1, 1/|s|) per parameter, s the last secant slope of G along the path
-(slope 0.6 of the map: x2.5; on a synthetic reference of half the fast model's sensitivity the widened interval
-matches the spread of the fixed point over noise seeds, tests/estimation/test_model_correction.py), the refit's
-own intervals kept in ``extra["interval_propagation"]``. Also measured there and rejected: an Anderson /
-multisecant step (type II, memory 2, capped at the larger of the Picard step and the refit's half-width)
-extrapolated through the non-identified sigma_a of a marble pyramid under a point light to +98 % and ended 17-24 % off (3 of 3 seeds; the
-Picard iteration: within 4 %); a per-parameter secant step diverged on the 4096-spp skin1 pyramid (-75 %), whose
-first refit moves sigma_a by +22 points and sigma_s' by -3. A smoothing radius of kappa of 3 patch spacings
-instead of 1.5 shifts G_s at the truth by +11 points (it blurs the edge deficit); equal instead of inverse-variance
-smoothing weights, dropping kappa's variance from the refit's noise or a second-order (Jensen) correction of
-1 / kappa move it by less than 1.5 points.
-
-What this is not: a remedy for an unknown or wrong geometry (the reference uses the geometry the estimator is
-given), nor free — each iteration is one full render. The result reports the fast model's bias *in this
-scene* (``extra["model_bias"]``: the radiance ratio fast model / reference per patch — median, 5th and 95th percentiles
-and the rms of its log), which is the honest measure of how wrong
-the flat model was here, beside the table-level bias of :func:`estimation.single_image.model_bias`.
-
-The reference renderer is any callable ``reference(sigma_s_prime_per_mm (C,), sigma_a_per_mm (C,), eta, seed)
--> (radiance (m or K, C), stderr (m or K, C))`` in the units of the observations (NaN where not observed);
-``rig.mc_reference`` builds one from ``simulators.mc`` (this package imports nothing else of ours).
+The reference renderer is any callable ``reference(sigma_s_prime_per_mm (C,), sigma_a_per_mm (C,), eta, seed) ->
+(radiance, stderr)`` or ``(radiance, stderr, d_radiance, d_stderr)``, radiance and stderr (m or K, C) in the units
+of the observations (NaN where not observed), d_radiance (m or K, C, 2) the derivatives with respect to (log
+sigma_s', log sigma_a); ``rig.mc_reference`` builds one from ``simulators.mc`` (this package imports nothing else of
+ours). Every render uses the same ``seed`` (common random numbers: the iteration sees one fixed realisation of the
+reference, whose noise enters the refit's standard errors).
 """
 from __future__ import annotations
 
-import inspect
 import time
 from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-
 from scipy.sparse import csr_matrix
 from scipy.spatial import cKDTree
 
-from .single_image import (Lights, Patches, SingleImageResult, estimate_single_image, predict_radiance,
-                           sigma_a_verdict)
+from .single_image import (Lights, Patches, SingleImageResult, estimate_single_image, map_parameters,
+                           patch_irradiance, predict_radiance, sigma_a_verdict)
 
-__all__ = ["ReferenceRenderer", "ReferenceStep", "estimate_with_reference"]
+__all__ = ["ReferenceRenderer", "ReferenceStep", "estimate_with_reference", "MAX_OK_INTERVAL_RATIO",
+           "parameter_status"]
 
 Array = NDArray[np.float64]
+_Z95 = 1.959963984540054
+
+#: a converged sigma_s' is reported "ok" only when its 95 % interval spans at most this factor (hi / lo); wider
+#: intervals are "weak": the scene holds sigma_s' too loosely to quote it as a measurement
+MAX_OK_INTERVAL_RATIO: float = 1.5
+#: converged: the refit moved every parameter by less than this fraction of its standard error
+SETTLE_SD_FRACTION: float = 0.5
+#: a rejected step shorter than this many standard errors is a statistical tie with the accepted point: converged
+TIE_SD: float = 1.0
+#: a patch's reference enters multiplicatively (kappa = Q / M) only when Q exceeds this many standard errors
+SIGNAL_SE: float = 5.0
+#: predicted changes of the objective below this (chi-square units of the normalized residuals) are not resolved:
+#: such a step is accepted without the ratio test (Monte Carlo noise along the step dominates it)
+RESOLVED_OBJECTIVE: float = 2.0
+#: initial trust-region radius in log parameters (a factor e^0.7 ~ 2) and its bounds
+TRUST_RADIUS_START, TRUST_RADIUS_MIN, TRUST_RADIUS_MAX = 0.7, 0.01, 3.0
+#: the derivative of the correction is averaged over growing neighbourhoods (in patch spacings) until its standard
+#: error is below SLOPE_REL_SE of the derivative's magnitude (:func:`_adaptive_slope`)
+SLOPE_SMOOTH_SPACINGS: tuple[float, ...] = (1.5, 3.0, 6.0, 12.0)
+SLOPE_REL_SE: float = 0.2
+#: step of the fast model's central differences in log parameters
+_FAST_FD_STEP = 1e-3
+#: secant slope bounds of the derivative-free path (interval widening only)
+SECANT_SLOPE_BOUNDS: tuple[float, float] = (-2.0, -0.1)
+_ASSUMED_SLOPE = -0.5
 
 
 class ReferenceRenderer(Protocol):
-    """Radiance of the observed patches under full light transport, with its standard error."""
+    """Radiance of the observed patches under full light transport, with its standard error (and derivatives)."""
 
     def __call__(self, sigma_s_prime_per_mm: Array, sigma_a_per_mm: Array, eta: float, seed: int
-                 ) -> tuple[Array, Array]:
-        """(radiance, stderr), each (m, C) over the visible patches or (K, C) over all patches; NaN where the
-        reference has no value (the patch is then left out of the refit)."""
+                 ) -> tuple[Array, ...]:
+        """(radiance, stderr) or (radiance, stderr, d_radiance, d_stderr) (module docstring)."""
         ...
 
 
 @dataclass(frozen=True)
 class ReferenceStep:
-    """One iteration: the parameters fitted after it and what the correction looked like."""
+    """One iteration: the point rendered, the refit after it, the trust-region bookkeeping and the correction."""
 
     iteration: int
     sigma_s_prime_per_mm: list[float]
@@ -136,35 +125,57 @@ class ReferenceStep:
     kappa_p05: list[float]
     kappa_p95: list[float]
     kappa_rel_stderr_median: list[float]
-    change: float  # max relative change of the parameters in this step
-    # the point the reference was rendered at in this step (empty for step 0, the base fit)
+    change: float  # max relative change of the parameters from the accepted point to the refit
     rendered_sigma_s_prime_per_mm: list[float] = field(default_factory=list)
     rendered_sigma_a_per_mm: list[float] = field(default_factory=list)
+    accepted: list[bool] = field(default_factory=list)
+    rho: list[float] = field(default_factory=list)
+    trust_radius_log: list[float] = field(default_factory=list)
+    objective: list[float] = field(default_factory=list)
+    additive_fraction: list[float] = field(default_factory=list)
+    derivatives: bool = False
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
 
 
-def _visible_rows(values: ArrayLike, name: str, patches: Patches, n_ch: int) -> Array:
+@dataclass
+class _Correction:
+    """The reference at one rendered point and the corrected model built from it (rows = visible patches)."""
+
+    theta: Array      # (C, 2) log parameters rendered
+    q: Array          # (m, C)
+    q_se: Array       # (m, C)
+    kappa: Array      # (m, C) smoothed; 1 on additive rows
+    kappa_var: Array
+    shift: Array      # (m, C) additive part a (0 on multiplicative rows)
+    shift_var: Array
+    slope: Array      # (m, C, 2) D = Q' - kappa M' B (0 without derivatives)
+    matrix: Array     # (C, 2, 2) the parameter map B (identity without derivatives)
+    objective: Array  # (C,) the reference's robust objective at theta
+    additive: NDArray[np.bool_]
+
+
+def _visible_rows(values: ArrayLike, name: str, patches: Patches, n_ch: int, tail: tuple[int, ...] = ()) -> Array:
     a = np.asarray(values, dtype=np.float64)
-    if a.ndim == 1:
+    if a.ndim == 1 + len(tail):
         a = a[:, None]
     vis = patches.visible_index
     k_all = patches.centers_mm.shape[0]
-    if a.ndim != 2 or a.shape[0] not in (vis.size, k_all):
-        raise ValueError(f"{name} has shape {np.shape(values)}; expected ({vis.size}, C) visible patches or "
-                         f"({k_all}, C) patches")
+    if a.ndim != 2 + len(tail) or a.shape[0] not in (vis.size, k_all) or a.shape[2:] != tail:
+        raise ValueError(f"{name} has shape {np.shape(values)}; expected ({vis.size}, C{''.join(f', {t}' for t in tail)})"
+                         f" visible patches or ({k_all}, C{''.join(f', {t}' for t in tail)}) patches")
     if a.shape[0] == k_all and k_all != vis.size:
         a = a[vis]
     if a.shape[1] not in (1, n_ch):
         raise ValueError(f"{name} has {a.shape[1]} channels; expected 1 or {n_ch}")
-    return np.array(np.broadcast_to(a, (a.shape[0], n_ch)))
+    return np.array(np.broadcast_to(a, (a.shape[0], n_ch) + tail))
 
 
 def _smoothing_operator(patches: Patches, radius_mm: float, cos_min: float = float(np.cos(np.radians(25.0)))
                         ) -> csr_matrix | None:
-    """Row-stochastic (m, m) neighbour-mean operator over the visible patches: patches within ``radius_mm`` whose
-    normals differ by less than 25 deg (so a mean never straddles a sharp edge). None when radius_mm <= 0."""
+    """(m, m) 0/1 neighbour operator over the visible patches (self included): patches within ``radius_mm``
+    whose normals differ by less than 25 deg (a mean never straddles a sharp edge). None when radius_mm <= 0."""
     if not radius_mm > 0:
         return None
     vis = patches.visible_index
@@ -177,82 +188,216 @@ def _smoothing_operator(patches: Patches, radius_mm: float, cos_min: float = flo
     return csr_matrix((np.ones(i.size), (i, j)), shape=(vis.size, vis.size))
 
 
-def _smooth(op: csr_matrix | None, kappa: Array, kappa_var: Array) -> tuple[Array, Array]:
-    """Inverse-variance weighted neighbour mean of kappa (NaN entries skipped) and the variance of that mean."""
+def _weighted_mean(op: csr_matrix | None, value: Array, var: Array, use: NDArray[np.bool_]) -> tuple[Array, Array]:
+    """Inverse-variance neighbour mean of ``value`` over the rows where ``use`` (per column) and its variance; rows
+    without a usable neighbour get NaN."""
+    ok = use & np.isfinite(value) & np.isfinite(var) & (var > 0)
+    w = np.where(ok, 1.0 / np.where(ok, var, 1.0), 0.0)
     if op is None:
-        return kappa, kappa_var
-    ok = np.isfinite(kappa) & np.isfinite(kappa_var) & (kappa_var > 0)
-    w = np.where(ok, 1.0 / np.where(ok, kappa_var, 1.0), 0.0)
-    den = op @ w
-    num = op @ (w * np.where(ok, kappa, 0.0))
+        den, num = w, w * np.where(ok, value, 0.0)
+    else:
+        den = op @ w
+        num = op @ (w * np.where(ok, value, 0.0))
     have = den > 0
-    mean = np.where(have, num / np.where(have, den, 1.0), np.nan)
-    var = np.where(have, 1.0 / np.where(have, den, 1.0), np.nan)
-    return mean, var
+    return np.where(have, num / np.where(have, den, 1.0), np.nan), np.where(have, 1.0 / np.where(have, den, 1.0),
+                                                                            np.nan)
 
 
-#: the iteration stops when the refit's estimated distance to the fixed point is below this fraction of the
-#: refit's own standard error (the 95 % half-width / 1.96) in every parameter, or below ``rel_tol``
-SETTLE_SD_FRACTION: float = 0.25
-_Z95 = 1.959963984540054
-#: secant slope of G assumed where none was measured (map slope 1/2, as the stop rule assumes after one render)
-_ASSUMED_SLOPE = -0.5
-#: estimate_single_image's default identifiable_ratio (the widened sigma_a interval is judged by the same rule)
-_IDENTIFIABLE_RATIO = float(inspect.signature(estimate_single_image).parameters["identifiable_ratio"].default)
+def _fast_model(patches: Patches, e_t: Array, eta: float, theta: Array, model: str) -> tuple[Array, Array]:
+    """The fast model's radiance M (m, C) at theta (C, 2) and its central-difference derivatives (m, C, 2), in one
+    system build (the channels and the five stencil points side by side)."""
+    n_ch = theta.shape[0]
+    h = _FAST_FD_STEP
+    pts = [theta, theta + [h, 0.0], theta - [h, 0.0], theta + [0.0, h], theta - [0.0, h]]
+    th = np.concatenate(pts, axis=0)  # (5 C, 2)
+    e5 = np.tile(np.broadcast_to(e_t, (e_t.shape[0], n_ch)), (1, 5))
+    m = predict_radiance(patches, e5, eta, np.exp(th[:, 0]), np.exp(th[:, 1]), model=model)
+    m = m.reshape(m.shape[0], 5, n_ch)
+    jac = np.stack([(m[:, 1] - m[:, 2]) / (2 * h), (m[:, 3] - m[:, 4]) / (2 * h)], axis=2)
+    return m[:, 0], jac
 
 
-def _settled(render_log: Array, new_log: Array, channels: NDArray[np.bool_], fit: SingleImageResult,
-             rel_tol: float, remaining: Array | None = None) -> bool:
-    """True when every parameter's refit is close to the fixed point against the refit's own uncertainty, so the
-    iteration error is small beside the data's noise.
+def _render(reference: Any, theta: Array, eta: float, seed: int, patches: Patches, n_ch: int
+            ) -> tuple[Array, Array, Array | None, Array | None, float]:
+    t0 = time.perf_counter()
+    out = reference(np.exp(theta[:, 0]), np.exp(theta[:, 1]), eta, int(seed))
+    seconds = time.perf_counter() - t0
+    if not isinstance(out, tuple) or len(out) not in (2, 4):
+        raise ValueError("the reference renderer must return (radiance, stderr) or (radiance, stderr, d_radiance, "
+                         "d_stderr)")
+    q = _visible_rows(out[0], "reference radiance", patches, n_ch)
+    se = _visible_rows(out[1], "reference stderr", patches, n_ch)
+    if len(out) == 2:
+        return q, se, None, None, seconds
+    d = _visible_rows(out[2], "reference derivatives", patches, n_ch, (2,))
+    d_se = _visible_rows(out[3], "reference derivative stderr", patches, n_ch, (2,))
+    return q, se, d, d_se, seconds
 
-    ``render_log`` and ``new_log`` are log (sigma_s', sigma_a), shape (2, C), of the render point p and the refit
-    F(p). ``remaining`` (2, C), default 1, is the refit's estimated distance to the fixed point per unit step:
-    |1 + s| / |s| for a secant slope s of G = F - p (:func:`_secant_slope`; a map of slope 0.6 leaves 1.5 steps
-    to go, one of slope -0.5 a third of one). That distance counts as settled when it is below ``rel_tol``
-    (relative) or below :data:`SETTLE_SD_FRACTION` of the parameter's standard error, taken from its 95 %
-    interval:
 
-    - a two-sided interval (lo > 0): the distance in log against 0.5 log(hi / lo) / 1.96;
-    - a one-sided interval [0, hi] (sigma_a's profile interval when the data cannot tell sigma_a from 0): the
-      distance in sigma_a itself against (hi / 2) / 1.96. Its log-width is infinite — under the former rule such
-      a parameter counted as settled at once whatever it did — and the Wald interval in log sigma_a is no
-      remedy: there the likelihood is flat towards 0 and its curvature at the estimate (possibly at the floor,
-      where any log step is tiny against it) says nothing about the interval. The profile interval is a
-      statement on the linear scale, and on that scale its width hi is finite;
-    - no finite interval: ``rel_tol`` only.
-    """
-    factor = np.ones_like(render_log) if remaining is None else np.asarray(remaining, dtype=np.float64)
-    dist = np.abs(new_log - render_log) * factor
-    ok = dist <= np.log1p(rel_tol)
-    frac = SETTLE_SD_FRACTION / _Z95
-    for row, ci in enumerate((fit.sigma_s_prime_ci_per_mm, fit.sigma_a_ci_per_mm)):
+def _huber_sum(z: Array, k: float = 2.5) -> Array:
+    """Sum over rows of the Huber loss of z (m, C), NaN rows skipped: (C,)."""
+    a = np.abs(z)
+    loss = np.where(a <= k, 0.5 * a ** 2, k * a - 0.5 * k * k)
+    return np.nansum(np.where(np.isfinite(loss), loss, np.nan), axis=0)
+
+
+def _adaptive_slope(raw: Array, raw_se: Array, scale: Array, smoothers: list[csr_matrix | None]) -> Array:
+    """Neighbour means of the correction's derivative ``raw`` (m, C, 2), per patch over the smallest of the
+    ``smoothers`` (growing radii) whose mean has a standard error below :data:`SLOPE_REL_SE` x ``scale`` (the
+    magnitude of the whole derivative there), else the largest. The score-function derivatives are noisy per patch
+    (d/d log sigma_s' ~100-200 % at 128 spp) and their noise, squared in the fit's normal equations, would shorten
+    every Gauss-Newton step (regression dilution: measured steps of ~0.6 of the way on an index-matched cube)."""
+    out = np.zeros_like(raw)
+    done = np.zeros(raw.shape, bool)
+    ok = np.isfinite(raw) & np.isfinite(raw_se)
+    v = np.where(ok, raw, 0.0)
+    v2 = np.where(ok, raw_se ** 2, 0.0)
+    for k, op in enumerate(smoothers):
+        n_raw = ok.astype(np.float64)
+        if op is None:
+            cnt, mean_num, var_num = n_raw, v, v2
+        else:
+            shp = raw.shape
+            flat = lambda a: a.reshape(shp[0], -1)  # noqa: E731
+            cnt = (op @ flat(n_raw)).reshape(shp)
+            mean_num = (op @ flat(v)).reshape(shp)
+            var_num = (op @ flat(v2)).reshape(shp)
+        have = cnt > 0
+        mean = np.where(have, mean_num / np.where(have, cnt, 1.0), 0.0)
+        se = np.where(have, np.sqrt(var_num) / np.where(have, cnt, 1.0), np.inf)
+        take = ~done & have & ((se <= SLOPE_REL_SE * scale) | (k == len(smoothers) - 1))
+        out[take] = mean[take]
+        done |= take
+    return out
+
+
+def _parameter_map(dq: Array, dm: Array, use: NDArray[np.bool_], weight: Array) -> Array:
+    """Per channel the 2 x 2 map B with Q' ~ (kappa M') B over the patches (weighted least squares, shrunk towards
+    the identity by 1e-3 of the normal matrix's scale): the reference responds to the parameters as the fast model
+    responds to B times them (space mapping; Bandler et al. 1994, "Space mapping technique for electromagnetic
+    optimization", IEEE T-MTT 42(12)). The derivative noise enters linearly (no regression dilution)."""
+    n_ch = dq.shape[1]
+    out = np.broadcast_to(np.eye(2), (n_ch, 2, 2)).copy()
+    for c in range(n_ch):
+        ok = use[:, c] & np.isfinite(weight[:, c]) & np.all(np.isfinite(dm[:, c]), axis=1)
+        if ok.sum() < 3:
+            continue
+        sw = np.sqrt(weight[ok, c])[:, None]
+        x, y = dm[ok, c] * sw, dq[ok, c] * sw
+        xtx = x.T @ x
+        lam = 1e-3 * max(float(np.trace(xtx)) / 2.0, 1e-300)
+        try:
+            b = np.linalg.solve(xtx + lam * np.eye(2), x.T @ y + lam * np.eye(2))  # (2 in, 2 out): Q' ~ M' b
+        except np.linalg.LinAlgError:
+            continue
+        if np.all(np.isfinite(b)):
+            out[c] = b  # theta_c = theta_i + B (theta - theta_i), so d(M o P)/d theta = M' B (rows: Q'_row ~ M'_row B)
+    return out
+
+
+def _build(theta: Array, q: Array, se: Array, dq: Array | None, dq_se: Array | None, m: Array, dm: Array,
+           smoother: csr_matrix | None, slope_smoothers: list[csr_matrix | None], objective: Array,
+           weight: Array) -> _Correction:
+    good = np.isfinite(q) & np.isfinite(se) & np.isfinite(m)
+    mult = good & (q > SIGNAL_SE * se) & (m > 0) & (q > 0)
+    safe_m = np.where(mult, m, 1.0)
+    kappa_raw = np.where(mult, q / safe_m, np.nan)
+    kvar_raw = np.where(mult, (se / safe_m) ** 2, np.nan)
+    kappa, kappa_var = _weighted_mean(smoother, kappa_raw, kvar_raw, mult)
+    add = good & ~(mult & np.isfinite(kappa))
+    shift, shift_var = _weighted_mean(smoother, q - m, np.maximum(se, 1e-300) ** 2, add)
+    kappa = np.where(add, 1.0, kappa)
+    kappa_var = np.where(add, 0.0, kappa_var)
+    shift = np.where(add, np.where(np.isfinite(shift), shift, q - m), 0.0)
+    shift_var = np.where(add, np.where(np.isfinite(shift_var), shift_var, se ** 2), 0.0)
+    n_ch = q.shape[1]
+    matrix = np.broadcast_to(np.eye(2), (n_ch, 2, 2)).copy()
+    if dq is None or dq_se is None:
+        slope = np.zeros(q.shape + (2,))
+    else:
+        import os
+        mode = os.environ.get("SSSRIG_MAPMODE", "fit")
+        if mode == "fit":
+            matrix = _parameter_map(dq, kappa[..., None] * dm, good & np.all(np.isfinite(dq), axis=2), weight)
+        elif mode == "zero":
+            matrix = np.zeros((n_ch, 2, 2))
+        raw = np.where(good[..., None], dq - np.einsum("mck,ckj->mcj", kappa[..., None] * dm, matrix), np.nan)
+        # the magnitude the noise is judged against: the derivative as the widest neighbourhood sees it (low noise)
+        wide = _adaptive_slope(np.where(good[..., None], dq, np.nan), dq_se, np.zeros_like(dq), slope_smoothers[-1:])
+        scale = np.abs(wide)
+        scale = np.maximum(scale, 0.05 * np.nanmax(np.where(good[..., None], scale, np.nan), axis=0, keepdims=True))
+        slope = _adaptive_slope(raw, dq_se, np.nan_to_num(scale, nan=np.inf), slope_smoothers)
+    bad = ~good
+    kappa[bad], kappa_var[bad], shift[bad], shift_var[bad] = np.nan, np.nan, np.nan, np.nan
+    return _Correction(theta.copy(), q, se, kappa, kappa_var, shift, shift_var, slope, matrix, objective, add & good)
+
+
+def _search_box(theta: Array, radius: Array, prev: SingleImageResult, se_floor: NDArray[np.bool_]) -> Array:
+    """The trust region (C, 2 lo/hi, 2 params) in log parameters about theta: +- the trust radius, but at least +- 3
+    standard errors of the previous fit (a weakly determined parameter may move far: a step in sigma_a from
+    1.6e-4 to its truth 2.1e-3 is 2.6 in log), and for a one-sided sigma_a interval [0, hi] everything from the
+    floor up to 3 hi — until a step of the channel has been rejected (``se_floor`` False): from then on the trust
+    radius alone."""
+    se = _standard_errors(prev, _theta(prev))
+    r = np.maximum(radius, 3.0 * np.where(np.isfinite(se), np.minimum(se, 10.0), 10.0))
+    r = np.where(se_floor[:, None], r, radius)
+    lo, hi = theta - r, theta + r
+    sa_ci = np.asarray(prev.sigma_a_ci_per_mm, dtype=np.float64).reshape(-1, 2)
+    one = ~(sa_ci[:, 0] > 0) & np.isfinite(sa_ci[:, 1]) & (sa_ci[:, 1] > 0) & se_floor
+    lo[one, 1] = np.log(1e-7)
+    hi[one, 1] = np.maximum(hi[one, 1], np.log(3.0 * sa_ci[one, 1]))
+    return np.stack([lo, hi], axis=1)
+
+
+def _corrected_fit(obs: Array, sig: Array | None, corr: _Correction, patches: Patches, e_t: Array, eta: float,
+                   base_model: str, box_log: Array, fit_kwargs: dict[str, Any]) -> SingleImageResult:
+    """Fit F(theta) = kappa M(B theta) + a + D phi(theta - theta_i) to the observations inside ``box_log``."""
+    kappa = corr.kappa
+    data = (obs - corr.shift) / kappa
+    sig_c = None
+    if sig is not None:
+        var = (sig ** 2 + corr.shift_var) / kappa ** 2 + (obs - corr.shift) ** 2 * corr.kappa_var / kappa ** 4
+        sig_c = np.sqrt(var)
+    theta = corr.theta
+    box = np.exp(box_log)  # (C, 2 lo/hi, 2 params)
+    with np.errstate(all="ignore"):
+        return estimate_single_image(data, patches, e_t, eta, model=base_model, noise_sigma=sig_c,
+                                     data_slope=corr.slope / kappa[..., None], slope_ref_per_mm=np.exp(theta),
+                                     search_box_per_mm=box, start_per_mm=np.exp(theta),
+                                     parameter_map=(np.exp(theta), corr.matrix), **fit_kwargs)
+
+
+def _theta(r: SingleImageResult) -> Array:
+    return np.log(np.stack([np.asarray(r.sigma_s_prime_per_mm, float), np.asarray(r.sigma_a_per_mm, float)], axis=1))
+
+
+def _standard_errors(r: SingleImageResult, theta: Array) -> Array:
+    """Per channel and parameter (C, 2): the log standard error from the 95 % interval; for a one-sided sigma_a
+    interval [0, hi] the linear-scale error hi / 2 / 1.96 expressed at the estimate (relative)."""
+    out = np.full(theta.shape, np.inf)
+    for j, ci in enumerate((r.sigma_s_prime_ci_per_mm, r.sigma_a_ci_per_mm)):
         if ci is None:
             continue
         c = np.asarray(ci, dtype=np.float64).reshape(-1, 2)
-        lo, hi = c[:, 0], c[:, 1]
-        two_sided = np.isfinite(lo) & np.isfinite(hi) & (lo > 0) & (hi > lo)
-        one_sided = np.isfinite(hi) & (hi > 0) & ~(lo > 0)
+        est = np.exp(theta[:, j])
+        two = (c[:, 0] > 0) & np.isfinite(c[:, 1])
         with np.errstate(divide="ignore", invalid="ignore"):
-            half_log = 0.5 * np.log(hi / lo)
-            dist_lin = np.abs(np.exp(new_log[row]) - np.exp(render_log[row])) * factor[row]
-        ok[row] |= (two_sided & (dist[row] <= frac * half_log)) | (one_sided & (dist_lin <= frac * 0.5 * hi))
-    return bool(np.all(ok[:, channels]))
+            out[two, j] = 0.5 * np.log(c[two, 1] / c[two, 0]) / _Z95
+            one = ~two & np.isfinite(c[:, 1])
+            out[one, j] = (0.5 * c[one, 1] / _Z95) / est[one]
+    return out
 
 
-#: bounds of the secant slope s = dG/dp of G(p) = F(p) - p (log parameters), i.e. of the map's slope 1 + s: from
-#: -1 (a 2-cycle) to 0.9 (a slow drift, which leaves up to 9 steps to go)
-SECANT_SLOPE_BOUNDS: tuple[float, float] = (-2.0, -0.1)
+def _settled(step: Array, se: Array) -> NDArray[np.bool_]:
+    """(C,) every parameter's step (log) within SETTLE_SD_FRACTION of its standard error (relative for a one-sided
+    sigma_a: a log step of s is a relative change e^s - 1)."""
+    return np.all(np.abs(np.expm1(np.abs(step))) <= SETTLE_SD_FRACTION * se, axis=1)
 
 
 def _secant_slope(x_prev: Array, g_prev: Array, x: Array, g: Array) -> Array:
-    """Per-parameter secant slope s = (G_k - G_{k-1}) / (x_k - x_{k-1}) of G(x) = F(x) - x in log parameters,
-    clipped to :data:`SECANT_SLOPE_BOUNDS`; NaN where the two render points coincide.
-
-    1 + s is the slope of the map F along the path, and the fixed point lies at x_k - G_k / s, so the refit
-    F(x_k) = x_k + G_k is |G_k| |1 + s| / |s| from it (the error estimate behind Aitken's delta-squared process;
-    Ortega & Rheinboldt 2000, "Iterative solution of nonlinear equations in several variables", SIAM, sec. 12.1
-    on contraction-mapping error bounds)."""
+    """Secant slope (g - g_prev) / (x - x_prev) of G = F(x) - x (clipped to SECANT_SLOPE_BOUNDS); NaN where the two
+    points coincide. 1 + s is the slope of the map, and the refit F(x) = x + G is |G| |1 + s| / |s| from the fixed
+    point (Aitken's error estimate; Ortega & Rheinboldt 2000, sec. 12.1)."""
     dx = x - x_prev
     with np.errstate(divide="ignore", invalid="ignore"):
         slope = (g - g_prev) / dx
@@ -260,27 +405,15 @@ def _secant_slope(x_prev: Array, g_prev: Array, x: Array, g: Array) -> Array:
     return np.where(np.abs(dx) > 1e-9, np.clip(slope, *SECANT_SLOPE_BOUNDS), np.nan)
 
 
-def _finite_params(r: SingleImageResult) -> tuple[Array, Array, NDArray[np.bool_]]:
-    ssp = np.asarray(r.sigma_s_prime_per_mm, dtype=np.float64)
-    sa = np.asarray(r.sigma_a_per_mm, dtype=np.float64)
-    ok = np.isfinite(ssp) & np.isfinite(sa) & (ssp > 0) & (sa > 0)
-    if not ok.any():
-        return ssp, sa, ok
-    # channels without an estimate are rendered at a stand-in (their correction is not used)
-    ssp = np.where(ok, ssp, np.median(ssp[ok]))
-    sa = np.where(ok, sa, np.median(sa[ok]))
-    return ssp, sa, ok
-
-
 def _widen(ci: Array | None, est: Array, factor: Array) -> Array | None:
-    """95 % intervals (C, 2) about the estimates (C,) widened by ``factor`` (C,): in log for a two-sided interval
-    (lo > 0), linearly about the estimate for a one-sided one [0, hi] (its lower end stays 0)."""
+    """95 % intervals (C, 2) widened by ``factor`` (C,): in log for a two-sided interval, linearly about the estimate
+    for a one-sided one [0, hi] (its lower end stays 0)."""
     if ci is None:
         return None
     c = np.array(ci, dtype=np.float64).reshape(-1, 2)
     e = np.asarray(est, dtype=np.float64).reshape(-1)
     two = np.isfinite(c[:, 0]) & (c[:, 0] > 0) & np.isfinite(c[:, 1]) & (e > 0)
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(all="ignore"):
         lo2 = e * (c[:, 0] / e) ** factor
         hi2 = e * (c[:, 1] / e) ** factor
     hi1 = e + factor * (c[:, 1] - e)
@@ -291,186 +424,269 @@ def _widen(ci: Array | None, est: Array, factor: Array) -> Array | None:
     return out
 
 
-def _propagate_intervals(result: SingleImageResult, slope: Array, identifiable_ratio: float
-                         ) -> tuple[SingleImageResult, dict[str, Any]]:
-    """Widen the refit's intervals of (sigma_s', sigma_a) to the fixed point's, by the map's slope along the path.
+def _cover(ci: Array | None, points: Array) -> Array | None:
+    """Intervals (C, 2) stretched to contain ``points`` (C, P) (linear values) and their mirror images about the
+    interval's centre point set (the distance still to go can be as large as the last step)."""
+    if ci is None:
+        return None
+    c = np.array(ci, dtype=np.float64).reshape(-1, 2)
+    lo_p, hi_p = np.min(points, axis=1), np.max(points, axis=1)
+    span = hi_p / np.maximum(lo_p, 1e-300)
+    c[:, 0] = np.where(c[:, 0] > 0, np.minimum(c[:, 0], lo_p / span), c[:, 0])
+    c[:, 1] = np.maximum(c[:, 1], hi_p * span)
+    return c
 
-    The refit's intervals come from the fast model's sensitivity M': they describe F(p)'s noise e. The fixed point
-    p* = F(p*) moves by (I - dF/dp)^-1 e (module docstring): by 1 / |s| per parameter for the secant slope s of
-    G = F - p (``slope`` (2, C), :func:`_secant_slope`), the slope along the path the iteration took — which is
-    the direction it converges slowest in, where the amplification is largest (a diagonal, along-path estimate
-    of (I - dF/dp)^-1, the one the stop rule uses too). The factor is never below 1 (an overshooting map would
-    narrow the interval, which a noisy secant does not justify); where no slope was measured (the iteration
-    settled after one render) it is 2, the map slope of 1/2 the stop rule assumes then (:func:`_settled`).
-    sigma_a's identifiability is judged again on the widened interval. Returns the widened result and what was
-    done (``extra["interval_propagation"]``).
-    """
-    s = np.asarray(slope, dtype=np.float64)
-    known = np.isfinite(s)
-    with np.errstate(divide="ignore"):
-        factor = np.where(known, np.maximum(1.0, 1.0 / np.abs(np.where(known, s, 1.0))), 1.0 / abs(_ASSUMED_SLOPE))
-    ssp = np.asarray(result.sigma_s_prime_per_mm, dtype=np.float64)
-    sa = np.asarray(result.sigma_a_per_mm, dtype=np.float64)
-    info: dict[str, Any] = {
-        "method": "refit intervals x max(1, 1/|s|), s the secant slope of F(p) - p along the path (log parameters;"
-                  " s = -1/2 assumed where not measured)",
-        "map_slope": np.where(known, 1.0 + s, np.nan).tolist(), "factor": factor.tolist(),
-        "refit_sigma_s_prime_ci_per_mm": None if result.sigma_s_prime_ci_per_mm is None
-        else np.asarray(result.sigma_s_prime_ci_per_mm).tolist(),
-        "refit_sigma_a_ci_per_mm": None if result.sigma_a_ci_per_mm is None
-        else np.asarray(result.sigma_a_ci_per_mm).tolist(),
-        "slope_known": known.tolist()}
-    ssp_ci = _widen(result.sigma_s_prime_ci_per_mm, ssp, factor[0])
-    sa_ci = _widen(result.sigma_a_ci_per_mm, sa, factor[1])
-    sa_ci_jac = _widen(result.sigma_a_ci_jacobian_per_mm, sa, factor[1])
-    ident = list(result.sigma_a_identifiable_per_channel)
-    reasons = result.identifiability_reason
-    if sa_ci is not None and ident:
-        verdicts = [sigma_a_verdict(float(lo), float(hi), identifiable_ratio) for lo, hi in sa_ci]
-        ident = [v[0] for v in verdicts]
-        reasons = "; ".join(f"channel {c}: {why} (fixed point: the refit's interval widened x{factor[1, c]:.2g})"
-                            for c, (_, why) in enumerate(verdicts))
-    out = replace(result, sigma_s_prime_ci_per_mm=ssp_ci, sigma_a_ci_per_mm=sa_ci,
-                  sigma_a_ci_jacobian_per_mm=sa_ci_jac, sigma_a_identifiable=bool(ident) and all(ident),
-                  sigma_a_identifiable_per_channel=tuple(ident), identifiability_reason=reasons)
-    return out, info
+
+def parameter_status(result: SingleImageResult, converged: NDArray[np.bool_] | None, *,
+                     max_ratio: float = MAX_OK_INTERVAL_RATIO, extra_reasons: list[str] | None = None
+                     ) -> tuple[dict[str, list[str]], list[str]]:
+    """Per channel: "ok" | "weak" for sigma_s' and sigma_a (module docstring) and the reasons. ``converged`` (C,)
+    or None (no iteration: only the intervals count); ``extra_reasons`` (per channel, or empty strings) force
+    "weak" with that reason."""
+    ssp_ci = np.asarray(result.sigma_s_prime_ci_per_mm, dtype=np.float64).reshape(-1, 2)
+    n_ch = ssp_ci.shape[0]
+    conv = np.ones(n_ch, bool) if converged is None else np.asarray(converged, bool)
+    forced = extra_reasons or [""] * n_ch
+    ident = list(result.sigma_a_identifiable_per_channel) or [False] * n_ch
+    st_s, st_a, reasons = [], [], []
+    for c in range(n_ch):
+        lo, hi = ssp_ci[c]
+        why: list[str] = []
+        if not conv[c]:
+            why.append("the reference iteration did not converge")
+        if forced[c]:
+            why.append(forced[c])
+        wide = not (lo > 0 and np.isfinite(hi) and hi / lo <= max_ratio)
+        s_ok = not why and not wide
+        a_ok = not why and bool(ident[c])
+        if wide:
+            why.append(f"sigma_s' interval {lo:.3g}-{hi:.3g} /mm spans more than a factor {max_ratio:g}")
+        if not ident[c]:
+            why.append("sigma_a not identifiable (its interval)")
+        st_s.append("ok" if s_ok else "weak")
+        st_a.append("ok" if a_ok else "weak")
+        reasons.append(f"channel {c}: " + ("; ".join(why) if why else "ok"))
+    return {"sigma_s_prime_per_mm": st_s, "sigma_a_per_mm": st_a}, reasons
 
 
 def estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lights: Lights, eta: float,
                             reference: ReferenceRenderer, *, noise_sigma: ArrayLike | None = None,
-                            base_model: str = "mc-table", max_iterations: int = 4, rel_tol: float = 0.01,
+                            base_model: str = "mc-table", max_iterations: int = 6, rel_tol: float = 0.0,
                             seed: int = 1, smooth_spacings: float = 1.5, min_iterations: int = 1,
                             **fit_kwargs: Any) -> SingleImageResult:
-    """Fit ``base_model`` and correct it by ``reference`` renders of the scene until the parameters settle.
+    """Fit the reference's radiance to the observations by trust-region Gauss-Newton steps of the corrected fast
+    model (module docstring).
 
     ``observed_radiance``, ``noise_sigma``, ``patches``, ``lights``, ``eta`` and ``fit_kwargs`` are those of
-    :func:`estimation.single_image.estimate_single_image` (``method`` defaults to "direct"). ``reference`` is
-    called at most ``max_iterations`` times (at least ``min_iterations``), always with ``seed`` (common random
-    numbers; the module docstring); each refit also starts from the point just rendered (``start_per_mm``). Returns the last fit, with ``model``
-    set to ``"<base_model>+reference"`` and ``extra["reference"]`` holding every step (the refit's parameters, the
-    point rendered, seconds, the correction's median / 5th / 95th percentile), ``extra["converged"]`` (the last
-    refit was estimated close to the fixed point: :func:`_settled`) and ``extra["model_bias"]``, the base
-    model's radiance over the reference's at the final parameters. The intervals of sigma_s' and sigma_a are the
-    fixed point's: the refit's widened by the map's slope along the path (:func:`_propagate_intervals`;
-    ``extra["interval_propagation"]`` keeps the refit's own and the factors); R_d and l_d keep the refit's. A
-    failed base fit is returned as it is (falsy, its message prefixed); a reference that returns no usable value raises ``ValueError`` naming it.
+    :func:`estimation.single_image.estimate_single_image` ("direct" method). ``reference`` is called at most
+    ``max_iterations`` times (at least ``min_iterations``), always with ``seed``. ``rel_tol`` > 0 also counts a
+    refit within that relative change of its accepted point as converged. Returns the last accepted refit with
+    ``model`` ``"<base_model>+reference"``, ``extra["reference"]`` (every step: the point rendered, the refit, rho,
+    the trust radius, the correction's statistics, seconds), ``extra["converged"]`` (per channel in
+    ``extra["converged_per_channel"]``), ``extra["status"]`` / ``["status_reasons"]`` (:func:`parameter_status`),
+    ``extra["model_bias"]`` (the fast model over the reference at the end). A failed base fit is returned as it is
+    (falsy, its message prefixed); a reference with no usable value gives a falsy result that says so.
     """
     if max_iterations < 1:
         raise ValueError("max_iterations must be >= 1")
     if not 1 <= min_iterations <= max_iterations:
         raise ValueError("min_iterations must lie in [1, max_iterations]")
-    if not rel_tol > 0:
-        raise ValueError("rel_tol must be > 0")
+    if not rel_tol >= 0:
+        raise ValueError("rel_tol must be >= 0")
     if not smooth_spacings >= 0:
         raise ValueError("smooth_spacings must be >= 0")
     if "model" in fit_kwargs:
         raise TypeError("pass the fast model as base_model=, not model=")
+    for key in ("data_slope", "slope_ref_per_mm", "search_box_per_mm", "start_per_mm"):
+        if key in fit_kwargs:
+            raise TypeError(f"{key} is set by the reference iteration")
+    if fit_kwargs.get("method", "direct") != "direct":
+        raise ValueError("the reference-corrected fit uses method='direct'")
     t_all = time.perf_counter()
     eta_f = float(eta)
     obs0 = np.asarray(observed_radiance, dtype=np.float64)
     n_ch = 1 if obs0.ndim == 1 else obs0.shape[1]
     obs = _visible_rows(obs0, "observed_radiance", patches, n_ch)
     sig = None if noise_sigma is None else _visible_rows(noise_sigma, "noise_sigma", patches, n_ch)
+    e_t = patch_irradiance(patches, lights, eta_f)
 
     t0 = time.perf_counter()
-    result = estimate_single_image(obs, patches, lights, eta_f, model=base_model, noise_sigma=sig, **fit_kwargs)
+    with np.errstate(all="ignore"):
+        result = estimate_single_image(obs, patches, e_t, eta_f, model=base_model, noise_sigma=sig, **fit_kwargs)
     if not result:
         return replace(result, message=f"base fit ({base_model}) failed: {result.message}")
+    model_name = f"{base_model}+reference"
     steps = [ReferenceStep(0, np.asarray(result.sigma_s_prime_per_mm).tolist(),
                            np.asarray(result.sigma_a_per_mm).tolist(), 0.0, time.perf_counter() - t0,
                            [1.0] * n_ch, [1.0] * n_ch, [1.0] * n_ch, [0.0] * n_ch, np.inf)]
     spacing = patches.spacing_mm if patches.spacing_mm > 0 else float(np.sqrt(np.median(patches.areas_mm2)))
     smoother = _smoothing_operator(patches, smooth_spacings * spacing)
-    converged = False
-    kappa_use = np.ones_like(obs)
-    render_log: Array | None = None  # log (sigma_s', sigma_a) (2, C) of the next render
-    last_step: Array | None = None
-    relax = np.ones((2, n_ch))
-    prev: tuple[Array, Array] | None = None  # last render point and G = F - x there (log, (2, C))
-    last_slope = np.full((2, n_ch), np.nan)  # latest secant slope of G per parameter (interval propagation)
+    slope_smoothers = [smoother if abs(r - smooth_spacings) < 1e-9 else _smoothing_operator(patches, r * spacing)
+                       for r in SLOPE_SMOOTH_SPACINGS] if smooth_spacings > 0 else [None]
+    model_error = float(fit_kwargs.get("model_error", 0.02))
+
+    theta_try = _theta(result)
+    radius = np.full((n_ch, 2), TRUST_RADIUS_START)
+    se_floor = np.ones(n_ch, bool)
+    acc: _Correction | None = None
+    acc_fit: SingleImageResult | None = None
+    predicted = np.full(n_ch, np.nan)  # F_acc's objective at theta_try
+    metric: Array | None = None
+    huber_scale = 1.0
+    converged = np.zeros(n_ch, bool)
+    with_derivatives = False
+    path: list[tuple[Array, Array]] = []  # (accepted point, refit) for the derivative-free widening
+    last_step = np.zeros((n_ch, 2))
     for it in range(1, max_iterations + 1):
-        ssp, sa, ok_ch = _finite_params(result)
-        if not ok_ch.any():
-            break
-        if render_log is not None:
-            ssp, sa = np.exp(render_log[0]), np.exp(render_log[1])
-        t_r = time.perf_counter()
-        ref, ref_se = reference(ssp, sa, eta_f, int(seed))
-        render_s = time.perf_counter() - t_r
-        ref = _visible_rows(ref, "reference radiance", patches, n_ch)
-        ref_se = _visible_rows(ref_se, "reference stderr", patches, n_ch)
-        model_l = predict_radiance(patches, lights, eta_f, ssp, sa, model=base_model)
-        model_l = np.broadcast_to(model_l, obs.shape)
-        good = np.isfinite(ref) & np.isfinite(ref_se) & (ref > 0) & (model_l > 0)
-        if not good[:, ok_ch].any():
-            raise ValueError(f"reference renderer returned no positive finite radiance at the observed patches "
-                             f"(iteration {it}, sigma_s' {ssp.tolist()}, sigma_a {sa.tolist()})")
-        safe = np.where(good, model_l, 1.0)
-        kappa = np.where(good, ref / safe, np.nan)
-        kappa_var = np.where(good, (ref_se / safe) ** 2, np.nan)
-        kappa, kappa_var = _smooth(smoother, kappa, kappa_var)
-        logp = np.log(np.stack([ssp, sa]))
-        kappa_use = np.where(ok_ch[None, :], kappa, 1.0)
-        kappa_use_var = np.where(ok_ch[None, :], kappa_var, 0.0)
-        corrected = obs / kappa_use
-        sig_c = None
-        if sig is not None:
-            sig_c = np.sqrt((sig / kappa_use) ** 2 + (obs / kappa_use ** 2) ** 2 * kappa_use_var)
+        q, se, dq, dq_se, render_s = _render(reference, theta_try, eta_f, seed, patches, n_ch)
+        with_derivatives = dq is not None
+        good = np.isfinite(q) & np.isfinite(se)
+        if not good.any():
+            return SingleImageResult(False, f"the reference renderer returned no finite radiance at the observed "
+                                     f"patches (iteration {it})", "direct", model_name, eta_f,
+                                     extra={"reference": [s.as_dict() for s in steps]})
+        if metric is None:  # a fixed metric for the objective: stated noise, reference noise, relative model error
+            scale = np.abs(np.where(good, q, np.nan))
+            if sig is not None:
+                metric = np.sqrt(sig ** 2 + se ** 2 + (model_error * scale) ** 2)
+            else:
+                metric = np.sqrt(se ** 2 + (max(model_error, 0.02) * scale) ** 2
+                                 + (1e-3 * np.nanmax(scale, axis=0, keepdims=True)) ** 2)
+            z0 = (obs - q) / metric
+            huber_scale = max(1.0, 1.4826 * float(np.nanmedian(np.abs(z0)))) if np.isfinite(z0).any() else 1.0
+        with np.errstate(all="ignore"):
+            objective = _huber_sum((obs - q) / (metric * huber_scale))
+            m_fast, dm_fast = _fast_model(patches, e_t, eta_f, theta_try, base_model)
+        new = _build(theta_try, q, se, dq, dq_se, m_fast, dm_fast, smoother, slope_smoothers, objective,
+                     1.0 / metric ** 2)
+        # trust-region ratio test per channel
+        accepted = np.ones(n_ch, bool)
+        rho = np.full(n_ch, np.nan)
+        rho_is_first = acc is None
+        if acc is not None:
+            actual = acc.objective - objective
+            pred = acc.objective - predicted
+            with np.errstate(all="ignore"):
+                rho = np.where(pred > 0, actual / pred, np.where(actual >= 0, 1.0, -np.inf))
+            # any decrease is accepted (the Monte Carlo noise of the objective along a step makes the ratio itself
+            # noisy); a predicted change below RESOLVED_OBJECTIVE (chi-square units) is within the statistical
+            # resolution of the objective and accepted as well
+            accepted = (actual >= 0) | (np.abs(pred) < RESOLVED_OBJECTIVE)
+            se_floor &= accepted
+            step_len = np.abs(theta_try - acc.theta)
+            grow = (rho >= 0.75) & np.any(step_len >= 0.9 * radius, axis=1)
+            radius = np.where(grow[:, None], np.minimum(2.0 * radius, TRUST_RADIUS_MAX), radius)
+            shrink = ~accepted | (rho < 0.25)
+            radius = np.where(shrink[:, None], np.maximum(0.25 * np.maximum(step_len, TRUST_RADIUS_MIN),
+                                                          TRUST_RADIUS_MIN), radius)
+            # channels whose step was rejected keep the accepted point and its correction
+            keep = ~accepted
+            for name in ("q", "q_se", "kappa", "kappa_var", "shift", "shift_var", "slope", "additive"):
+                a_new, a_old = getattr(new, name), getattr(acc, name)
+                a_new[:, keep] = a_old[:, keep]
+            new.matrix[keep] = acc.matrix[keep]
+            new.theta[keep] = acc.theta[keep]
+            new.objective[keep] = acc.objective[keep]
+        acc = new
         t_f = time.perf_counter()
-        new = estimate_single_image(corrected, patches, lights, eta_f, model=base_model, noise_sigma=sig_c,
-                                    start_per_mm=np.stack([ssp, sa], axis=1), **fit_kwargs)
+        box_log = _search_box(acc.theta, radius, acc_fit if acc_fit is not None else result, se_floor)
+        fit = _corrected_fit(obs, sig, acc, patches, e_t, eta_f, base_model, box_log, fit_kwargs)
         fit_s = time.perf_counter() - t_f
-        if not new:
-            return replace(new, message=f"refit after reference iteration {it} failed: {new.message}",
-                           extra={**new.extra, "reference": [s.as_dict() for s in steps]})
-        ssp_n, sa_n, ok_n = _finite_params(new)
-        both = ok_ch & ok_n
-        step = np.log(np.stack([ssp_n, sa_n])) - logp  # F(p) - p in log parameters
-        change = float(np.expm1(np.max(np.abs(step[:, both]), initial=0.0)))
-        g_step = np.where(both[None, :], step, 0.0)
-        # relaxation against the overshoot of the map p -> F(p) (measured slope -0.4 to -1 in sigma_s' on cubes:
-        # a 2-cycle without it): halve a parameter's step factor whenever its step reverses sign, floor 1/4
-        if last_step is not None:
-            relax = np.where(np.sign(step) * np.sign(last_step) < 0, np.maximum(relax * 0.5, 0.25), relax)
+        if not fit:
+            return replace(fit, model=model_name, message=f"refit after reference iteration {it} failed: "
+                           f"{fit.message}", extra={**fit.extra, "reference": [s.as_dict() for s in steps]})
+        theta_fit = _theta(fit)
+        acc_prev_step = None if rho_is_first else theta_try - acc.theta  # the step just tested (0 if accepted)
+        step = theta_fit - acc.theta
         last_step = step
-        render_log = logp + relax * g_step
-        # slope of G along the path, per parameter: the refit F(p) is |G| |1 + s| / |s| from the fixed point
-        # (1 x |G| while unknown, i.e. a map slope of 1/2 assumed after the first render)
-        slope = np.full((2, n_ch), np.nan) if prev is None else _secant_slope(prev[0], prev[1], logp, g_step)
-        last_slope = np.where(np.isfinite(slope), slope, last_slope)
-        remaining = np.where(np.isfinite(slope), np.abs(1.0 + slope) / np.abs(slope), 1.0)
-        prev = (logp, g_step)
-        kq = np.where(good, kappa, np.nan)
-        steps.append(ReferenceStep(it, np.asarray(new.sigma_s_prime_per_mm).tolist(),
-                                   np.asarray(new.sigma_a_per_mm).tolist(), render_s, fit_s,
-                                   np.nanmedian(kq, axis=0).tolist(), np.nanpercentile(kq, 5, axis=0).tolist(),
-                                   np.nanpercentile(kq, 95, axis=0).tolist(),
-                                   np.nanmedian(np.sqrt(kappa_var) / kq, axis=0).tolist(), change,
-                                   ssp.tolist(), sa.tolist()))
-        result = new
-        if it >= min_iterations and _settled(logp, np.log(np.stack([ssp_n, sa_n])), both, new, rel_tol, remaining):
-            converged = True
+        path.append((acc.theta.copy(), theta_fit.copy()))
+        acc_fit = fit
+        se_fit = _standard_errors(fit, theta_fit)
+        settled = _settled(step, se_fit) & accepted
+        if acc_prev_step is not None:  # a rejected step within noise of the accepted point: a tie, converged
+            tie = ~accepted & np.all(np.abs(np.expm1(np.abs(acc_prev_step))) <= TIE_SD * se_fit, axis=1)
+            settled |= tie
+        if rel_tol > 0:
+            settled |= accepted & np.all(np.abs(np.expm1(step)) <= rel_tol, axis=1)
+        converged = settled
+        # the corrected model's objective at the refit, for the next ratio test
+        with np.errstate(all="ignore"):
+            mapped = np.stack([map_parameters(theta_fit[c:c + 1], acc.theta[c], acc.matrix[c])[0]
+                               for c in range(n_ch)])
+            m_fit, _ = _fast_model(patches, e_t, eta_f, mapped, base_model)
+            phi = np.tanh(step)  # CORRECTION_SATURATION_LOG = 1
+            f_fit = acc.kappa * m_fit + acc.shift + np.einsum("mck,ck->mc", acc.slope, phi)
+            predicted = _huber_sum((obs - f_fit) / (metric * huber_scale))
+        kq = np.where(acc.additive | ~np.isfinite(acc.kappa), np.nan, acc.kappa)
+        with np.errstate(all="ignore"):
+            kstats = [np.nanmedian(kq, axis=0), np.nanpercentile(kq, 5, axis=0), np.nanpercentile(kq, 95, axis=0),
+                      np.nanmedian(np.sqrt(acc.kappa_var) / kq, axis=0)]
+        kstats = [np.where(np.isfinite(k), k, np.nan).tolist() for k in kstats]
+        steps.append(ReferenceStep(it, np.exp(theta_fit[:, 0]).tolist(), np.exp(theta_fit[:, 1]).tolist(), render_s,
+                                   fit_s, *kstats, float(np.expm1(np.max(np.abs(step)))),
+                                   np.exp(theta_try[:, 0]).tolist(), np.exp(theta_try[:, 1]).tolist(),
+                                   accepted.tolist(), rho.tolist(), radius.max(axis=1).tolist(), objective.tolist(),
+                                   np.mean(acc.additive, axis=0).tolist(), with_derivatives))
+        if it >= min_iterations and np.all(converged):
             break
-    inv = 1.0 / kappa_use
-    fin = np.isfinite(inv) & (inv > 0)
-    log_inv = np.where(fin, np.log(np.where(fin, inv, 1.0)), np.nan)
-    bias = {"reference": "scene reference renderer (full light transport in the given geometry)",
-            "model": base_model,
-            "radiance_ratio_median": np.nanmedian(np.where(fin, inv, np.nan), axis=0).tolist(),
-            "radiance_ratio_p05": np.nanpercentile(np.where(fin, inv, np.nan), 5, axis=0).tolist(),
-            "radiance_ratio_p95": np.nanpercentile(np.where(fin, inv, np.nan), 95, axis=0).tolist(),
-            "rms_log_ratio": np.sqrt(np.nanmean(log_inv ** 2, axis=0)).tolist(),
-            "table_level": result.extra.get("model_bias")}
-    result, propagation = _propagate_intervals(result, last_slope,
-                                               float(fit_kwargs.get("identifiable_ratio", _IDENTIFIABLE_RATIO)))
-    extra = {**result.extra, "reference": [s.as_dict() for s in steps], "converged": converged,
-             "interval_propagation": propagation,
+        theta_try = theta_fit
+    assert acc is not None and acc_fit is not None
+    result = acc_fit
+    theta_fin = _theta(result)
+    # intervals: the fit's own (the reference's Jacobian) when converged with derivatives; without derivatives,
+    # widened by the fixed point's noise amplification; not converged: stretched over the last step
+    ssp_ci, sa_ci = result.sigma_s_prime_ci_per_mm, result.sigma_a_ci_per_mm
+    propagation: dict[str, Any] = {"method": "the corrected model's Jacobian (the reference's derivatives)"}
+    if not with_derivatives:
+        slope = np.full((2, n_ch), np.nan)
+        if len(path) >= 2:
+            (x0, f0), (x1, f1) = path[-2], path[-1]
+            slope = _secant_slope(x0.T, (f0 - x0).T, x1.T, (f1 - x1).T)
+        known = np.isfinite(slope)
+        factor = np.where(known, np.maximum(1.0, 1.0 / np.abs(np.where(known, slope, 1.0))), 1.0 / abs(_ASSUMED_SLOPE))
+        ssp_ci = _widen(ssp_ci, np.exp(theta_fin[:, 0]), factor[0])
+        sa_ci = _widen(sa_ci, np.exp(theta_fin[:, 1]), factor[1])
+        propagation = {"method": "no reference derivatives: refit intervals x max(1, 1/|s|), s the secant slope of "
+                                 "F(p) - p along the path (x2 where not measured)",
+                       "factor": factor.tolist(), "slope_known": known.tolist()}
+    if not np.all(converged):
+        pts_s = np.exp(np.stack([acc.theta[:, 0], theta_fin[:, 0]], axis=1))
+        pts_a = np.exp(np.stack([acc.theta[:, 1], theta_fin[:, 1]], axis=1))
+        nc = ~converged
+        ssp_w, sa_w = _cover(ssp_ci, pts_s), _cover(sa_ci, pts_a)
+        ssp_ci = np.where(nc[:, None], ssp_w, ssp_ci)
+        sa_ci = np.where(nc[:, None], sa_w, sa_ci)
+        propagation["not_converged"] = "intervals stretched over the last step and as much again"
+    propagation["refit_sigma_s_prime_ci_per_mm"] = np.asarray(result.sigma_s_prime_ci_per_mm).tolist()
+    propagation["refit_sigma_a_ci_per_mm"] = np.asarray(result.sigma_a_ci_per_mm).tolist()
+    ratio = float(fit_kwargs.get("identifiable_ratio", 10.0))
+    verdicts = [sigma_a_verdict(float(lo), float(hi), ratio) for lo, hi in np.asarray(sa_ci).reshape(-1, 2)]
+    result = replace(result, sigma_s_prime_ci_per_mm=ssp_ci, sigma_a_ci_per_mm=sa_ci,
+                     sigma_a_identifiable=all(v[0] for v in verdicts),
+                     sigma_a_identifiable_per_channel=tuple(v[0] for v in verdicts),
+                     identifiability_reason="; ".join(f"channel {c}: {why}" for c, (_, why) in enumerate(verdicts)))
+    status, reasons = parameter_status(result, converged)
+    # the fast model's bias in this scene: M / Q at the final accepted render point
+    with np.errstate(all="ignore"):
+        m_acc, _ = _fast_model(patches, e_t, eta_f, acc.theta, base_model)
+        ratio_mq = np.where((acc.q > SIGNAL_SE * np.abs(acc.q_se)) & (m_acc > 0), m_acc / acc.q, np.nan)
+        fin = np.isfinite(ratio_mq) & (ratio_mq > 0)
+        bias = {"reference": "scene reference renderer (full light transport in the given geometry)",
+                "model": base_model,
+                "radiance_ratio_median": np.nanmedian(np.where(fin, ratio_mq, np.nan), axis=0).tolist(),
+                "radiance_ratio_p05": np.nanpercentile(np.where(fin, ratio_mq, np.nan), 5, axis=0).tolist(),
+                "radiance_ratio_p95": np.nanpercentile(np.where(fin, ratio_mq, np.nan), 95, axis=0).tolist(),
+                "rms_log_ratio": np.sqrt(np.nanmean(np.where(fin, np.log(np.where(fin, ratio_mq, 1.0)), np.nan) ** 2,
+                                                    axis=0)).tolist(),
+                "table_level": result.extra.get("model_bias")}
+    all_conv = bool(np.all(converged))
+    extra = {**result.extra, "reference": [s.as_dict() for s in steps], "converged": all_conv,
+             "converged_per_channel": converged.tolist(), "status": status, "status_reasons": reasons,
+             "interval_propagation": propagation, "reference_derivatives": with_derivatives,
              "reference_iterations": len(steps) - 1, "model_bias": bias, "base_model": base_model,
              "seconds_total": time.perf_counter() - t_all}
-    msg = result.message if converged else (f"{result.message}; reference iteration stopped after "
-                                            f"{len(steps) - 1} renders with a last change of "
-                                            f"{steps[-1].change:.1%} (> rel_tol {rel_tol:.1%})")
-    if not np.all(np.isfinite(last_slope)):
-        msg += ("; the map's slope was not measured (one render, or a parameter that did not move): its intervals "
-                "are the refit's widened x2, the slope the stop rule assumes (min_iterations=2 measures it)")
-    return replace(result, model=f"{base_model}+reference", message=msg, extra=extra)
+    msg = result.message
+    if not all_conv:
+        msg += (f"; the reference iteration did not converge in {len(steps) - 1} renders (last step "
+                f"{np.expm1(np.max(np.abs(last_step))):.1%}): estimates are weak, intervals cover the last step")
+    return replace(result, model=model_name, message=msg, extra=extra)

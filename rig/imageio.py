@@ -50,11 +50,7 @@ def _check_array(path: Path, a: NDArray[Any]) -> NDArray[np.float32]:
         raise ImageFileError(path, f"expected an image of shape (H, W), (H, W, 3) or (H, W, 4); got {a.shape}")
     if a.ndim == 3 and a.shape[2] == 4:
         a = a[..., :3]  # alpha is not radiance
-    out = np.ascontiguousarray(a, dtype=np.float32)
-    if not np.all(np.isfinite(out)):
-        bad = int(np.count_nonzero(~np.isfinite(out)))
-        raise ImageFileError(path, f"{bad} pixel values are NaN or infinite; expected finite linear radiance")
-    return out
+    return np.ascontiguousarray(a, dtype=np.float32)
 
 
 def _read_exr(path: Path) -> tuple[NDArray[np.float32], dict[str, Any]]:
@@ -124,12 +120,22 @@ def _read_raw(path: Path) -> tuple[NDArray[np.float32], dict[str, Any]]:
     return _check_array(path, a), {"format": "raw", **meta}
 
 
-def read_image(path: str | os.PathLike[str]) -> tuple[NDArray[np.float32], dict[str, Any]]:
+def read_image(path: str | os.PathLike[str], *, allow_nonfinite: bool = False
+               ) -> tuple[NDArray[np.float32], dict[str, Any]]:
     """Read a linear image: ``(array float32 (H, W[, 3]) RGB, metadata)``; the format comes from the suffix.
 
     Raises :class:`ImageFileError` naming the file for a missing file, an unknown suffix, an unreadable or
-    non-linear (8-bit PNG) file, a wrong shape or NaN/inf samples.
+    non-linear (8-bit PNG) file, a wrong shape or (unless ``allow_nonfinite``: then ``metadata["nonfinite"]``
+    counts them and the caller excludes them) NaN/inf samples.
     """
+    img, meta = _read_any(path)
+    bad = int(np.count_nonzero(~np.isfinite(img)))
+    if bad and not allow_nonfinite:
+        raise ImageFileError(path, f"{bad} pixel values are NaN or infinite; expected finite linear radiance")
+    return img, {**meta, "nonfinite": bad}
+
+
+def _read_any(path: str | os.PathLike[str]) -> tuple[NDArray[np.float32], dict[str, Any]]:
     p = Path(path)
     if not p.is_file():
         raise ImageFileError(p, "no such file")

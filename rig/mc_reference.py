@@ -53,6 +53,7 @@ class MonteCarloReference:
     window_px: int = 3
     valid_px: NDArray[np.bool_] | None = None
     g: float = 0.0
+    derivatives: bool = True
     renders: list[dict[str, Any]] = field(default_factory=list)
 
     def __post_init__(self) -> None:
@@ -64,22 +65,32 @@ class MonteCarloReference:
                 raise ValueError(f"valid_px has shape {np.shape(self.valid_px)}; expected the camera's {want}")
 
     def __call__(self, sigma_s_prime_per_mm: Any, sigma_a_per_mm: Any, eta: float, seed: int
-                 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+                 ) -> tuple[NDArray[np.float64], ...]:
+        """(radiance, stderr) over all patches, and with ``derivatives`` also d radiance / d (log sigma_s',
+        log sigma_a) (K, C, 2) and its stderr, from the same paths (:func:`simulators.mc.render`)."""
         from simulators.mc import Medium, render
 
         ssp = np.atleast_1d(np.asarray(sigma_s_prime_per_mm, dtype=np.float64))
         sa = np.atleast_1d(np.asarray(sigma_a_per_mm, dtype=np.float64))
         media = [Medium.from_reduced(float(s), float(a), g=self.g, eta=float(eta)) for s, a in zip(ssp, sa)]
-        img = render(self.shape, media, self.camera, self.lights, spp=int(self.spp), seed=int(seed))
+        img = render(self.shape, media, self.camera, self.lights, spp=int(self.spp), seed=int(seed),
+                     derivatives=self.derivatives)
         valid = img.mask if self.valid_px is None else img.mask & np.asarray(self.valid_px, dtype=bool)
         valid = np.broadcast_to(valid[..., None], img.radiance.shape)
         obs, sig = sample_at_points(img.radiance, img.stderr ** 2, valid, self.camera, self.patches.centers_mm,
                                     self.window_px)
         paths = int(img.mask.sum()) * int(self.spp) * len(media)
         self.renders.append({"seed": int(seed), "seconds": img.seconds, "paths": paths,
-                             "paths_per_s": paths / max(img.seconds, 1e-9),
+                             "paths_per_s": paths / max(img.seconds, 1e-9), "derivatives": bool(self.derivatives),
                              "sigma_s_prime_per_mm": ssp.tolist(), "sigma_a_per_mm": sa.tolist()})
-        return obs, sig
+        if not self.derivatives or img.d_log_sigma is None:
+            return obs, sig
+        # at fixed g, d/d log sigma_s' = d/d log sigma_s (sigma_s = sigma_s' / (1 - g))
+        parts = [sample_at_points(img.d_log_sigma[..., j], img.d_log_sigma_stderr[..., j] ** 2, valid, self.camera,
+                                  self.patches.centers_mm, self.window_px) for j in range(2)]
+        d = np.stack([p[0] for p in parts], axis=2)
+        d_se = np.stack([p[1] for p in parts], axis=2)
+        return obs, sig, d, d_se
 
 
 @dataclass

@@ -280,11 +280,13 @@ class EstimationSpec:
 
 @dataclass(frozen=True)
 class NoiseSpec:
-    """Per-pixel noise in image values: constant ``sigma``, or shot + read noise."""
+    """Per-pixel noise in image values: constant ``sigma``, shot + read noise, or a standard-error image."""
 
     sigma: tuple[float, ...] | None
     electrons_per_value: float | None
     read_noise: tuple[float, ...] | None
+    stderr_path: Path | None = None
+    stderr_sha256: str | None = None
 
 
 @dataclass(frozen=True)
@@ -310,6 +312,8 @@ class Scene:
     environment_data: Array | None = field(repr=False, compare=False, default=None)  # (h, w, C) radiance
     # the mesh as read (mm, world frame) before max_edge_mm subdivision: the surface of the Monte Carlo reference
     render_mesh_data: Any = field(repr=False, compare=False, default=None)
+    # [noise].stderr_path loaded: (H, W, C) standard error per pixel in image values (NaN = unusable pixel)
+    stderr_data: Array | None = field(repr=False, compare=False, default=None)
 
     @property
     def channels(self) -> int:
@@ -565,6 +569,25 @@ def _read_env_image(r: _SceneReader, path: Path) -> Array:
     return a
 
 
+def _read_stderr(r: _SceneReader, path: Path, image_shape: tuple[int, ...]) -> Array:
+    """The per-pixel standard-error image of ``[noise].stderr_path``: the image's size, 1 or its channel count,
+    values >= 0 (NaN / inf pixels are left out of the fit, like the image's)."""
+    try:
+        a, _meta = read_image(path, allow_nonfinite=True)
+    except ImageFileError as exc:
+        raise r.fail("stderr_path", f"a readable standard-error image ({exc})", path.name) from None
+    a = np.asarray(a, np.float64)
+    if a.ndim == 2:
+        a = a[..., None]
+    h, w, c = image_shape
+    if a.shape[:2] != (h, w) or a.shape[2] not in (1, c):
+        raise r.fail("stderr_path", f"an image of the image's size {w} x {h} px with 1 or {c} channels",
+                     f"{path.name}: {a.shape[1]} x {a.shape[0]} px, {a.shape[2]} channels")
+    if np.any(a[np.isfinite(a)] < 0):
+        raise r.fail("stderr_path", "standard errors >= 0", f"{path.name}: min {float(np.nanmin(a)):.3g}")
+    return np.array(np.broadcast_to(a, (h, w, c)))
+
+
 def _read_mask(r: _SceneReader, path: Path) -> NDArray[np.bool_]:
     if path.suffix.lower() == ".exr":
         try:
@@ -623,7 +646,7 @@ def parse_scene(data: dict[str, Any], path: Path, file: str | None = None) -> Sc
                        "an image file (EXR, float/16-bit TIFF, 16-bit PNG or camera RAW/DNG)")
     assert img_path is not None
     try:
-        img, meta = read_image(img_path)
+        img, meta = read_image(img_path, allow_nonfinite=True)  # NaN / inf pixels are excluded, and counted
     except ImageFileError as exc:
         raise im.fail("path", f"a linear image file ({exc})", str(img_path.name)) from None
     image = np.asarray(img, np.float64)
@@ -759,13 +782,22 @@ def parse_scene(data: dict[str, Any], path: Path, file: str | None = None) -> Sc
                       estimation.max_patches)
 
     noise = None
+    stderr_img = None
     if top.has("noise"):
         nr = top.section("noise")
-        nr.only(("sigma", "electrons_per_value", "read_noise"))
-        if nr.has("sigma") == (nr.has("electrons_per_value") or nr.has("read_noise")):
-            raise nr.fail("sigma", "either sigma, or electrons_per_value (+ read_noise)", sorted(nr.data))
+        nr.only(("sigma", "electrons_per_value", "read_noise", "stderr_path"))
+        kinds = [nr.has("sigma"), nr.has("electrons_per_value") or nr.has("read_noise"), nr.has("stderr_path")]
+        if sum(kinds) != 1:
+            raise nr.fail("sigma", "exactly one of: sigma, electrons_per_value (+ read_noise), stderr_path",
+                          sorted(nr.data))
         if nr.has("sigma"):
             noise = NoiseSpec(_channels(nr, "sigma", n_ch, positive=True), None, None)
+        elif nr.has("stderr_path"):
+            se_path = nr.path("stderr_path", base, (".exr", ".tif", ".tiff"),
+                              "a per-pixel standard-error image (EXR or float TIFF, image value units)")
+            assert se_path is not None
+            stderr_img = _read_stderr(nr, se_path, image.shape)
+            noise = NoiseSpec(None, None, None, se_path, sha256_file(se_path))
         else:
             noise = NoiseSpec(None, nr.num("electrons_per_value", positive=True),
                               _channels(nr, "read_noise", n_ch, nonneg=True, default=0.0))
@@ -777,7 +809,7 @@ def parse_scene(data: dict[str, Any], path: Path, file: str | None = None) -> Sc
     return Scene(path=path, name=name, sha256=scene_hash, mesh=mesh_spec, camera=camera, image=image_spec,
                  point_lights=tuple(points), directional_lights=tuple(dirs), environment=env, material=material,
                  estimation=estimation, noise=noise, mesh_data=mesh, image_data=image, image_meta=dict(meta),
-                 mask_data=mask, environment_data=env_data, render_mesh_data=render_mesh)
+                 mask_data=mask, environment_data=env_data, render_mesh_data=render_mesh, stderr_data=stderr_img)
 
 
 def load_scene(path: str | os.PathLike[str]) -> Scene:
@@ -854,18 +886,31 @@ def _specular_patches(scene: Scene, patches: Any) -> NDArray[np.bool_]:
 
 
 # ---------------------------------------------------------------------------------------------- estimation
-def _pixel_variance(scene: Scene) -> Array:
+def _pixel_variance(scene: Scene, usable: NDArray[np.bool_]) -> tuple[Array, dict[str, Any]]:
+    """Per-pixel variance of the image values (H, W, C) and a description of the noise model: the scene's
+    ``[noise]``, or without one a signal-dependent fit var = a value + b to the usable pixels
+    (:func:`estimation.noise.estimate_signal_dependent_noise`)."""
+    from estimation.noise import estimate_signal_dependent_noise
+
     img = scene.image_data
     nz = scene.noise
     if nz is None:
-        return np.zeros_like(img)
+        fit = estimate_signal_dependent_noise(img, usable)
+        return fit.variance(img), {"source": "estimated from the image", "model": "var = a value + b",
+                                   **fit.as_dict()}
+    if nz.stderr_path is not None:
+        assert scene.stderr_data is not None
+        return np.square(scene.stderr_data), {"source": "given", "model": "standard-error image",
+                                              "path": str(nz.stderr_path)}
     if nz.sigma is not None:
-        return np.broadcast_to(np.square(np.asarray(nz.sigma))[None, None, :], img.shape).copy()
+        return (np.broadcast_to(np.square(np.asarray(nz.sigma))[None, None, :], img.shape).copy(),
+                {"source": "given", "model": "constant sigma", "sigma": list(nz.sigma)})
     assert nz.electrons_per_value is not None and nz.read_noise is not None
     var = np.maximum(img, 0.0) / nz.electrons_per_value + np.square(np.asarray(nz.read_noise))[None, None, :]
     if scene.image.format == "raw" and img.shape[2] == 3:
         var = var / np.array([1.0, 2.0, 1.0])  # G of a RAW superpixel is the mean of two photosites
-    return var
+    return var, {"source": "given", "model": "shot + read noise", "electrons_per_value": nz.electrons_per_value,
+                 "read_noise": list(nz.read_noise)}
 
 
 
@@ -904,7 +949,9 @@ def _scene_summary(scene: Scene) -> dict[str, Any]:
                        "model_error": scene.estimation.model_error},
         "noise": None if scene.noise is None else {"sigma": scene.noise.sigma,
                                                    "electrons_per_value": scene.noise.electrons_per_value,
-                                                   "read_noise": scene.noise.read_noise},
+                                                   "read_noise": scene.noise.read_noise,
+                                                   "stderr_path": None if scene.noise.stderr_path is None
+                                                   else str(scene.noise.stderr_path)},
     }
     return out
 
@@ -952,7 +999,9 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
     sat_ok = np.ones((h, w), bool) if scene.image.saturation is None else ~np.any(
         img >= scene.image.saturation, axis=2)
     valid = (on_object & user_ok & sat_ok)[..., None] & np.isfinite(img)
-    var = _pixel_variance(scene)
+    if scene.stderr_data is not None:
+        valid &= np.isfinite(scene.stderr_data)
+    var, noise_info = _pixel_variance(scene, np.all(valid, axis=2))
     obs, sigma = sample_at_points(img, var, valid, cam, patches.centers_mm, window_px=est.window_px)
     obs[~patches.visible] = np.nan
 
@@ -984,7 +1033,7 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
     e_t = _irradiance(scene, patches)
     n_obs = np.isfinite(obs[patches.visible]).sum(axis=0)
     fit_kw: dict[str, Any] = dict(method=meth, bin_mm=est.bin_mm, cutoff_mm=est.cutoff_mm,
-                                  noise_sigma=sigma if scene.noise is not None else None,
+                                  noise_sigma=sigma,
                                   model_error=est.model_error)
     reference_out: dict[str, Any] | None = None
     if model_name == REFERENCE_MODEL:
@@ -992,7 +1041,7 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
 
         from .scene_reference import scene_reference
 
-        valid_px = on_object & user_ok & sat_ok & np.all(np.isfinite(img), axis=2)
+        valid_px = np.all(valid, axis=2)
         ref, ref_info = scene_reference(scene, patches, valid_px, spp=spp)  # SceneFileError before any fit
         try:
             res = estimate_with_reference(obs, patches, e_t, scene.material.eta, ref, base_model="mc-table",
@@ -1017,10 +1066,10 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
         "seconds": seconds,
         "observations": {"patches": int(len(patches.areas_mm2)), "visible": int(patches.visible.sum()),
                          "observed_per_channel": n_obs.tolist(), "excluded_patches": excluded,
-                         "object_pixels": int(on_object.sum()), "patch_spacing_mm": patches.spacing_mm},
+                         "object_pixels": int(on_object.sum()), "patch_spacing_mm": patches.spacing_mm,
+                         "nonfinite_pixels": int(scene.image_meta.get("nonfinite", 0))},
         "radiometry": {"radiance_scale": list(scene.image.radiance_scale), "cross_polarized_factor": factor,
-                       "noise_model": "given ([noise])" if scene.noise is not None
-                       else "estimated from the residuals (relative weights)"},
+                       "noise_model": noise_info},
     }
     if res:
         ssp, sa = res.sigma_s_prime_per_mm, res.sigma_a_per_mm

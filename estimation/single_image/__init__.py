@@ -83,7 +83,7 @@ its intervals), :mod:`.results` (result types), :mod:`.estimate` (the entry poin
 from __future__ import annotations
 
 from ..mc_table import MODEL_NAME as MC_MODEL
-from .estimate import METHODS, estimate_single_image, predict_radiance
+from .estimate import METHODS, estimate_single_image, map_parameters, predict_radiance
 from .far_field import (EXACT_PAIR_BUDGET, EXACT_PAIR_BUDGET_BINNED, FAR_FIELD_MODES, FAR_FIELD_THETA,
                         FAR_FIELD_THETA_BINNED, _CubicLogBasis, _cubic_log_basis, _Geometry, _hat_basis, _log_grid,
                         quantization_weights)

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import time
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -91,6 +92,23 @@ def predict_radiance(patches: Patches, lights: Lights, eta: float, sigma_s_prime
 
 
 # ---------------------------------------------------------------------------------------------- public entry
+#: mapped log parameters are kept inside these bounds (the profile models' range; far outside a trust region a
+#: linear map could otherwise ask the table for sigma_a = 1e-40)
+_MAP_BOUNDS = (np.array([np.log(1e-4), np.log(1e-9)]), np.array([np.log(1e4), np.log(1e3)]))
+
+
+def map_parameters(theta: Array, ref_log: Array, matrix: Array) -> Array:
+    """log ref + B (theta - log ref) for a batch theta (T, 2), clipped to the models' range."""
+    out = ref_log[None, :] + (np.asarray(theta, dtype=np.float64) - ref_log[None, :]) @ np.asarray(matrix).T
+    return np.clip(out, *_MAP_BOUNDS)
+
+
+def _mapped(vector_fn: Any, ref_log: Array, matrix: Array) -> Any:
+    def fn(theta: Array) -> Array:
+        return vector_fn(map_parameters(theta, ref_log, matrix))
+    return fn
+
+
 def estimate_single_image(observed_radiance: ArrayLike, patches: Patches, lights: Lights, eta: float, *,
                           method: str = "direct", model: str = "dipole-jensen", bin_mm: float = 0.35,
                           cutoff_mm: float | None = None, tolerance: float = 1e-4, noise_sigma: ArrayLike | None = None,
@@ -100,7 +118,8 @@ def estimate_single_image(observed_radiance: ArrayLike, patches: Patches, lights
                           fdr: str = "fit", far_field: str = "auto", far_field_theta: float | None = None,
                           start_per_mm: ArrayLike | None = None, robust: bool = True,
                           data_slope: ArrayLike | None = None, slope_ref_per_mm: ArrayLike | None = None,
-                          search_box_per_mm: ArrayLike | None = None
+                          search_box_per_mm: ArrayLike | None = None,
+                          parameter_map: tuple[ArrayLike, ArrayLike] | None = None
                           ) -> SingleImageResult:
     """Estimate (sigma_s', sigma_a) per channel from one image (Mukaigawa et al. 2009, and better).
 
@@ -148,6 +167,10 @@ def estimate_single_image(observed_radiance: ArrayLike, patches: Patches, lights
         correction, :mod:`estimation.model_correction`). "direct" only.
     search_box_per_mm : optional (2, 2) or (C, 2, 2): [[sigma_s'_lo, sigma_a_lo], [sigma_s'_hi, sigma_a_hi]] per
         channel; the optimum is searched inside (a trust region); intervals span the whole range. "direct" only.
+    parameter_map : optional (ref_per_mm (2,) or (C, 2), matrix (2, 2) or (C, 2, 2)): the profile model is
+        evaluated at the mapped log parameters log ref + B (theta - log ref) instead of theta (space mapping: the
+        reference-corrected fit's model of how the scene responds to the parameters, :mod:`estimation.model_correction`);
+        the reported parameters, intervals and derived quantities are those of theta. "direct" only.
     start_per_mm : optional (sigma_s', sigma_a) per channel, (2,) or (C, 2): one more start of the fit beside the
         best grid points (e.g. the previous iterate of :func:`estimation.model_correction.estimate_with_reference`).
 
@@ -211,8 +234,19 @@ def estimate_single_image(observed_radiance: ArrayLike, patches: Patches, lights
             raise ValueError(f"start_per_mm must be positive finite (sigma_s', sigma_a), shape (2,) or ({n_ch}, 2); "
                              f"got shape {st.shape}")
         hints = list(np.log(np.broadcast_to(st, (n_ch, 2))))
-    if (data_slope is not None or search_box_per_mm is not None) and method != "direct":
-        raise ValueError("data_slope and search_box_per_mm need method='direct'")
+    if (data_slope is not None or search_box_per_mm is not None or parameter_map is not None) and method != "direct":
+        raise ValueError("data_slope, search_box_per_mm and parameter_map need method='direct'")
+    maps: list[tuple[Array, Array] | None] = [None] * n_ch
+    if parameter_map is not None:
+        ref_m = np.asarray(parameter_map[0], dtype=np.float64)
+        mat_m = np.asarray(parameter_map[1], dtype=np.float64)
+        if (ref_m.shape not in ((2,), (n_ch, 2)) or mat_m.shape not in ((2, 2), (n_ch, 2, 2))
+                or not np.all(np.isfinite(mat_m)) or not np.all(np.isfinite(ref_m)) or np.any(ref_m <= 0)):
+            raise ValueError(f"parameter_map must be (positive ref (2,) or ({n_ch}, 2), finite matrix (2, 2) or "
+                             f"({n_ch}, 2, 2))")
+        ref_l = np.log(np.broadcast_to(ref_m, (n_ch, 2)))
+        mat_b = np.broadcast_to(mat_m, (n_ch, 2, 2))
+        maps = [(ref_l[c], mat_b[c]) for c in range(n_ch)]
     slope_obs = ref_log = None
     if data_slope is not None:
         sl = np.asarray(data_slope, dtype=np.float64)
@@ -338,7 +372,8 @@ def estimate_single_image(observed_radiance: ArrayLike, patches: Patches, lights
             # would get large weights), Huber reweighting, the final fit (:mod:`.weights`)
             w_tot = mats[c][ok]
             sl_c = None if slope_obs is None else (np.pi * c_exit / ft[ok])[:, None] * slope_obs[ok, c]
-            wf = fit_direct_channel(vector_fn, w_tot, l_c, sig_l, sa_floor=sigma_a_floor_per_mm,
+            vfn = vector_fn if maps[c] is None else _mapped(vector_fn, *maps[c])
+            wf = fit_direct_channel(vfn, w_tot, l_c, sig_l, sa_floor=sigma_a_floor_per_mm,
                                     model_error=model_error, noise_floor=noise_floor, robust=robust,
                                     profile=profile_likelihood, start_hint=hints[c], slope=sl_c,
                                     theta_ref=None if ref_log is None else ref_log[c], box=boxes[c])
