@@ -91,8 +91,10 @@ def captured() -> Iterator[dict[str, Any]]:
 def file_check(scene: Any, spec: SceneSpec, spp: int) -> list[float]:
     """The scene file against the frame: the Monte Carlo reference the estimator would render from the *file*
     (rig.scene_reference: mesh, camera, lights, map and orientation keys as loaded) at the true parameters, and
-    the image read back (value / radiance_scale), sampled at the same patches; the median over observed patches of
-    image over the sum of the reference per channel (means: the Monte Carlo pixels are heavy-tailed). ~1 where the file describes the frame's lighting and geometry (noise aside)."""
+    the image read back (value / radiance_scale), sampled at the same patches: the sum of the image over the sum of
+    the reference on the observed patches, per channel (sums, not a median of ratios: Monte Carlo pixels are
+    heavy-tailed). ~1 where the file describes the frame's lighting and geometry, up to the noise of both (under
+    a sun lobe a 1024-spp render's object total varies by ~4 % between seeds)."""
     import numpy as np
 
     from estimation.single_image import patches_from_mesh
@@ -165,10 +167,11 @@ def print_scene(spec: SceneSpec, meta: dict[str, Any], folder: Path, results: li
           f"{meta['mc_rel_stderr_median']:.1%}, max/p99 {meta['max_over_p99']:.1f}), {noise}; [noise] "
           f"{'given (true gain/read noise)' if spec.noise_section else 'absent'}; exact zeros "
           f"{meta['zero_fraction']:.1%} of object pixels; {meta['object_pixels']} object px; patches <= "
-          f"{meta['max_edge_mm']} mm; render {meta['render_seconds']:.1f} s{' (cached)' if meta.get('cached') else ''}")
-    print(f"truth {spec.material}-{ch}: sigma_s' {spec.sigma_s_prime_per_mm.tolist()}, sigma_a {spec.sigma_a_per_mm.tolist()} "
-          f"/mm; eta {spec.eta}; unlit observed faces {meta['unlit_faces']}; max observed view angle "
-          f"{meta['max_observed_view_deg']:.0f} deg; world {spec.world}"
+          f"{meta['max_edge_mm']} mm; render {meta['render_seconds']:.1f} s"
+          f"{' (cached)' if meta.get('cached') else ''}")
+    print(f"truth {spec.material}-{ch}: sigma_s' {spec.sigma_s_prime_per_mm.tolist()}, sigma_a "
+          f"{spec.sigma_a_per_mm.tolist()} /mm; eta {spec.eta}; unlit observed faces {meta['unlit_faces']}; max "
+          f"observed view angle {meta['max_observed_view_deg']:.0f} deg; world {spec.world}"
           + ("" if spec.point_lights else f"; map {spec.env_rows} rows, keys {dict(spec.env_keys)}"))
     print(f"file check: image / Monte Carlo reference rendered from the scene file at the truth (sums over the "
           f"observed patches): {', '.join(f'{x:.3f}' for x in meta['file_check'])}")
@@ -190,7 +193,8 @@ def print_scene(spec: SceneSpec, meta: dict[str, Any], folder: Path, results: li
             path = ", ".join(f"{st['iteration']}: {'/'.join(_pct(e) for e in st['err_s'])} | "
                              f"{'/'.join(_pct(e) for e in st['err_a'])} @ {st['seconds_cumulative']:.1f} s"
                              for st in r["steps"])
-            print(f"- {r['model']} (converged {r['converged']}) step: sigma_s' err | sigma_a err @ cumulative s: {path}")
+            print(f"- {r['model']} (converged {r['converged']}) step: sigma_s' err | sigma_a err @ cumulative s: "
+                  f"{path}")
     sys.stdout.flush()
 
 

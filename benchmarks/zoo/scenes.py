@@ -18,7 +18,9 @@ A scene is a :class:`SceneSpec` (plain numbers, JSON-able, hashed for the cache)
   rotation: ``up`` becomes a vector): the mesh, camera, lights and map are written in it.
 - material-channel from science.md sec. 2 (reduced sigma_s', sigma_a per mm), one channel or RGB; eta in
   {1.0, 1.3, 1.5}, at least three eta = 1 cubes (index-matched boundary).
-- noise: ``mc`` the Monte Carlo frame at low spp (heavy-tailed pixels, fireflies), EXR; ``zeros`` camera shot +
+- noise (``zeros`` only with point lights: an evenly lit object under a map has no dark pixels to clip):
+  ``mc`` the Monte Carlo frame at low spp (heavy-tailed pixels, fireflies), EXR (frames of the other classes
+  at 256 spp, sun-lit ones at 1024); ``zeros`` camera shot +
   read noise clipped at 0 after black-level subtraction (dark pixels exactly 0); ``camera`` Poisson-Gaussian
   (electrons per value, read noise) as float EXR (unclipped) or 16-bit PNG. ``noise_section``: the scene file
   carries the true gain and read noise in ``[noise]``, or nothing.
@@ -52,6 +54,10 @@ BOX_MM = (5.0, 20.0, 40.0)
 MAX_VIEW_DEG = 70.0      # the estimator's default grazing limit: faces beyond it are not observed
 GRAZING_DEG = 60.0       # a scene is "graze" when an observed face is seen farther than this from its normal
 SUN_SIGMA_DEG = 3.5
+# the renderer finds a map's sun only when an escaping walk happens to leave towards it (no light sampling of maps):
+# at 256 spp a sun-lit frame is 25-45 % noisy per pixel; the zeros/camera classes render sun scenes at 4x the spp
+# so that the camera noise is not swamped (the mc class keeps its 32 spp)
+SUN_SPP_FACTOR = 4
 QUICK_CLASSES = ("unlit", "eta1", "sun", "mc", "zeros", "camera")   # what the --quick subset must cover
 
 
@@ -262,6 +268,11 @@ def draw_zoo(n: int = 24, *, size_px: int = 64, spp: dict[str, int] | None = Non
     rng = np.random.default_rng(seed)
     shapes, lights, noises = _balanced(rng, SHAPES, n), _balanced(rng, LIGHTS, n), _balanced(rng, NOISES, n)
     etas = _balanced(rng, ETAS, n)
+    for i in range(n):   # exact zeros need dark object pixels: the zeros class goes with point lights
+        if noises[i] == "zeros" and not lights[i].startswith("point"):
+            j = next((k for k in range(n) if lights[k].startswith("point") and noises[k] != "zeros"), None)
+            if j is not None:
+                noises[i], noises[j] = noises[j], noises[i]
     mats = list(MATERIAL_CHANNELS) + [MATERIAL_CHANNELS[int(i)] for i in rng.integers(len(MATERIAL_CHANNELS),
                                                                                        size=max(0, n - 15))]
     for _ in range(10000):   # boxes (40 mm) only with materials whose shortest l_d is >= 3 mm
@@ -310,7 +321,8 @@ def draw_zoo(n: int = 24, *, size_px: int = 64, spp: dict[str, int] | None = Non
             world_rotation=tuple(tuple(float(x) for x in row) for row in rot), material=material,
             channels=channels, eta=etas[i], noise=noise, noise_section=bool(sections[i]) and noise != "mc",
             gain_e_per_value=round(gain, 2), read_noise_e=round(read_e, 3), image_format=fmt,
-            frame_spp=spp[noise], frame_seed=1000 + i, noise_seed=2000 + i, patch_budget=patch_budget)
+            frame_spp=spp[noise] * (SUN_SPP_FACTOR if lights[i] == "sun" and noise != "mc" else 1),
+            frame_seed=1000 + i, noise_seed=2000 + i, patch_budget=patch_budget)
         while spec.light.startswith("point") and not spec.point_lights:
             spec = replace(spec, point_lights=_point_lights(rng, spec))
             if not spec.point_lights:
