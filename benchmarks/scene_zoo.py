@@ -13,10 +13,12 @@ failure class of issue 15 at least once; each scene's name lists its classes:
   (benchmarks/zoo/frames.py);
 - ``eta1`` / ``eta1.3`` / ``eta1.5`` (three or more eta = 1 cubes: index-matched boundary);
 - material-channel from science.md sec. 2 (marble, skin1, apple, skimmilk, ketchup-R, potato-B; three RGB scenes);
-- noise ``mc`` (the Monte Carlo frame at 32 spp, fireflies; float EXR), ``zeros`` (256-spp frame, shot + read
-  noise clipped at 0 after black-level subtraction: dark pixels exactly 0), ``camera`` (256-spp frame,
-  Poisson-Gaussian with a stated gain in electrons per value and read noise; float EXR or 16-bit PNG);
-  ``noise-section``: the scene file's ``[noise]`` holds the true gain and read noise (else no ``[noise]``).
+- noise ``mc`` (the Monte Carlo frame at 32 spp, fireflies; float EXR), ``zeros`` (point-lit scenes only: 256-spp
+  frame, shot + read noise clipped at 0 after black-level subtraction: dark pixels exactly 0), ``camera`` (256-spp
+  frame, 1024 under a sun; Poisson-Gaussian with a stated gain in electrons per value and read noise; float EXR or
+  16-bit PNG); ``noise-section``: the scene file's ``[noise]`` holds the true gain and read noise (else none).
+  Point-lit spheres are drawn at eta = 1 (the renderer's refracted point-light connection is face by face, ~50x
+  slower on the 320-face icosphere than on a cube).
 
 Every scene is rendered by ``simulators.mc.render`` and written as a documented scene-file folder (docs/scene-file.md)
 under ``benchmarks/out/zoo/<content hash>/``, cached by the hash of the scene description, the frame spp and the
@@ -31,10 +33,12 @@ sigma_a error beside the cumulative seconds. Then per model the acceptance lines
 counts; rules.py), a summary table and, per failure class, the pairs within 10 % and the median errors.
 
 Run: ``python benchmarks/scene_zoo.py [--quick] [--json FILE] [--reference-spp N] [--reference-iterations K]
-[--scenes 0,3,7] [--models mc-table,...]``. Cost (2 shared cores, NUMBA_NUM_THREADS=2): the full zoo (64 x 64 px
-frames, references 128 spp, at most 6 renders) renders its frames once (~5-10 min) and estimates in ~30-50 min;
-``--quick`` (6 scenes covering unlit face, eta = 1, sun, fireflies, zeros, camera noise; 48 x 48 px, 64-spp frames,
-32-spp references, at most 4 renders) ~1.5-2 min. The exit status is 0 whatever the verdicts (they are printed;
+[--scenes 0,3,7] [--models mc-table,...]``. Cost, measured on 2 shared cores (NUMBA_NUM_THREADS=2): the full zoo
+(64 x 64 px frames; references 128 spp, at most 6 renders) ~11 min, of which the frames ~1.5 min (first run only)
+and mc-table+reference ~6 min; ``--quick`` (6 scenes covering unlit face, eta = 1, sun, fireflies, zeros, camera
+noise; 48 x 48 px, 64-spp frames, 32-spp references, at most 4 renders) ~50-75 s. Each scene also prints a *file
+check*: the Monte Carlo reference rendered from the scene file at the true parameters over the frame (~1 when the
+file describes what was rendered). The exit status is 0 whatever the verdicts (they are printed;
 tests/rig/test_scene_zoo.py asserts them on the quick subset). Progress goes to stderr, outside the captured
 estimates.
 """
