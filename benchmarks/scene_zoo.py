@@ -109,7 +109,7 @@ def file_check(scene: Any, spec: SceneSpec, spp: int) -> list[float]:
     pat = patches_from_mesh(scene.mesh_data, cam)
     valid = pixel_faces(scene.mesh_data, cam) >= 0
     ref, _ = scene_reference(scene, pat, valid, spp=spp)
-    q, _ = ref(spec.sigma_s_prime_per_mm, spec.sigma_a_per_mm, spec.eta, 7)
+    q = ref(spec.sigma_s_prime_per_mm, spec.sigma_a_per_mm, spec.eta, 7)[0]
     img = scene.image_data / np.asarray(scene.image.radiance_scale)[None, None, :]
     obs, _ = sample_at_points(img, img * 0, np.broadcast_to(valid[..., None], img.shape), cam, pat.centers_mm,
                               window_px=scene.estimation.window_px)

@@ -134,6 +134,7 @@ class ReferenceStep:
     objective: list[float] = field(default_factory=list)
     additive_fraction: list[float] = field(default_factory=list)
     derivatives: bool = False
+    parameter_map: list[list[list[float]]] = field(default_factory=list)  # B per channel (space mapping)
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -315,12 +316,7 @@ def _build(theta: Array, q: Array, se: Array, dq: Array | None, dq_se: Array | N
     if dq is None or dq_se is None:
         slope = np.zeros(q.shape + (2,))
     else:
-        import os
-        mode = os.environ.get("SSSRIG_MAPMODE", "fit")
-        if mode == "fit":
-            matrix = _parameter_map(dq, kappa[..., None] * dm, good & np.all(np.isfinite(dq), axis=2), weight)
-        elif mode == "zero":
-            matrix = np.zeros((n_ch, 2, 2))
+        matrix = _parameter_map(dq, kappa[..., None] * dm, good & np.all(np.isfinite(dq), axis=2), weight)
         raw = np.where(good[..., None], dq - np.einsum("mck,ckj->mcj", kappa[..., None] * dm, matrix), np.nan)
         # the magnitude the noise is judged against: the derivative as the widest neighbourhood sees it (low noise)
         wide = _adaptive_slope(np.where(good[..., None], dq, np.nan), dq_se, np.zeros_like(dq), slope_smoothers[-1:])
@@ -487,6 +483,15 @@ def estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, ligh
     ``extra["model_bias"]`` (the fast model over the reference at the end). A failed base fit is returned as it is
     (falsy, its message prefixed); a reference with no usable value gives a falsy result that says so.
     """
+    with np.errstate(all="ignore"):  # no numerical warning reaches the user: the status and message say it
+        return _estimate_with_reference(observed_radiance, patches, lights, eta, reference, noise_sigma, base_model,
+                                        max_iterations, rel_tol, seed, smooth_spacings, min_iterations, fit_kwargs)
+
+
+def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lights: Lights, eta: float,
+                             reference: ReferenceRenderer, noise_sigma: ArrayLike | None, base_model: str,
+                             max_iterations: int, rel_tol: float, seed: int, smooth_spacings: float,
+                             min_iterations: int, fit_kwargs: dict[str, Any]) -> SingleImageResult:
     if max_iterations < 1:
         raise ValueError("max_iterations must be >= 1")
     if not 1 <= min_iterations <= max_iterations:
@@ -626,7 +631,7 @@ def estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, ligh
                                    fit_s, *kstats, float(np.expm1(np.max(np.abs(step)))),
                                    np.exp(theta_try[:, 0]).tolist(), np.exp(theta_try[:, 1]).tolist(),
                                    accepted.tolist(), rho.tolist(), radius.max(axis=1).tolist(), objective.tolist(),
-                                   np.mean(acc.additive, axis=0).tolist(), with_derivatives))
+                                   np.mean(acc.additive, axis=0).tolist(), with_derivatives, acc.matrix.tolist()))
         if it >= min_iterations and np.all(converged):
             break
         theta_try = theta_fit
@@ -686,6 +691,9 @@ def estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, ligh
              "reference_iterations": len(steps) - 1, "model_bias": bias, "base_model": base_model,
              "seconds_total": time.perf_counter() - t_all}
     msg = result.message
+    if not with_derivatives and not np.all(propagation.get("slope_known", [[True]])):
+        msg += ("; the map's slope was not measured (one render without reference derivatives): intervals widened "
+                "x2, the slope assumed")
     if not all_conv:
         msg += (f"; the reference iteration did not converge in {len(steps) - 1} renders (last step "
                 f"{np.expm1(np.max(np.abs(last_step))):.1%}): estimates are weak, intervals cover the last step")

@@ -179,6 +179,20 @@ def estimate_single_image(observed_radiance: ArrayLike, patches: Patches, lights
     demo path is ``patches_from_mesh(mesh, camera)`` -> ``estimate_single_image(2 * cross_radiance, patches,
     PointLights(led_position[None], led_intensity[None]), eta)``.
     """
+    with np.errstate(all="ignore"):  # no numerical warning reaches the user: failures and notes say it
+        return _estimate(observed_radiance, patches, lights, eta, method, model, bin_mm, cutoff_mm, tolerance,
+                         noise_sigma, noise_floor, sigma_a_floor_per_mm, monotone, regularization, profile_likelihood,
+                         identifiable_ratio, model_error, fdr, far_field, far_field_theta, start_per_mm, robust,
+                         data_slope, slope_ref_per_mm, search_box_per_mm, parameter_map)
+
+
+def _estimate(observed_radiance: ArrayLike, patches: Patches, lights: Lights, eta: float, method: str, model: str,
+              bin_mm: float, cutoff_mm: float | None, tolerance: float, noise_sigma: ArrayLike | None,
+              noise_floor: float, sigma_a_floor_per_mm: float, monotone: bool, regularization: float | None,
+              profile_likelihood: bool, identifiable_ratio: float, model_error: float, fdr: str, far_field: str,
+              far_field_theta: float | None, start_per_mm: ArrayLike | None, robust: bool,
+              data_slope: ArrayLike | None, slope_ref_per_mm: ArrayLike | None, search_box_per_mm: ArrayLike | None,
+              parameter_map: tuple[ArrayLike, ArrayLike] | None) -> SingleImageResult:
     t0 = time.perf_counter()
     eta_f = float(eta)
     check_model(model, eta)
