@@ -164,11 +164,19 @@ class Outcome:
                 "notes": self.notes}
 
 
+def runner_options(cfg: RigConfig) -> dict[str, Any]:
+    """:func:`rig.runner.run_plan` options from the config's ``[sphere]`` watchdog and ``[runner]`` table."""
+    r = cfg.runner
+    return {"watchdog_s": cfg.sphere.watchdog_s or None, "retries": r.retries, "busy_timeout_s": r.busy_timeout_s,
+            "on_led_fault": r.on_led_fault, "on_over_temperature": r.on_over_temperature,
+            "lost_timeout_s": r.lost_timeout_s, "max_hold_s": r.max_hold_s}
+
+
 def _run(session: Session, steps: list[Step], rig: Rig, led_directions: np.ndarray, *,
          control: RunControl | None, progress: Callable[..., None] | None, say: Callable[[str], None],
          run_options: dict[str, Any] | None) -> RunResult:
     cfg = rig.config
-    opts = {"watchdog_s": cfg.sphere.watchdog_s or None, **(run_options or {})}
+    opts = {**runner_options(cfg), **(run_options or {})}
     return run_plan(steps, rig.devices, session, led_directions=led_directions,
                     pattern_peak=cfg.sphere.pattern_peak, fetch_timeout_s=cfg.camera.fetch_timeout_s,
                     progress=progress, control=control, reopen=rig.reopen, say=say, **opts)
@@ -219,12 +227,23 @@ def capture(config: RigConfig, request: CaptureRequest, *, sessions_dir: str | P
 
 def resume(root: str | Path, *, simulate: bool = False, control: RunControl | None = None,
            progress_factory: Callable[[list[Step]], Any] | None = None, say: Callable[[str], None] | None = None,
-           run_options: dict[str, Any] | None = None) -> Outcome:
+           run_options: dict[str, Any] | None = None, accept_faults: Any = ()) -> Outcome:
     """Continue a session: only the steps without a journalled frame or survey run (and the setup they need).
 
     The plan, config and LED geometry come from the session's manifest, so the resumed frames are taken exactly
-    as planned. A session already complete is left alone."""
+    as planned. A session already complete is left alone. ``accept_faults`` (e.g. ``["led_fault"]``): sphere
+    faults the operator has checked; they are journalled but no longer pause the run."""
+    from .runner import FAULT_NAMES
+
     say = say or (lambda m: None)
+    mask = 0
+    for name in accept_faults or ():
+        bits = [b for b, n in FAULT_NAMES.items() if n == name]
+        if not bits:
+            raise ValueError(f"accept_faults: unknown fault {name!r}; expected one of {', '.join(FAULT_NAMES.values())}")
+        mask |= bits[0]
+    if mask:
+        run_options = {**(run_options or {}), "accept_faults": mask}
     session = Session.open(root)
     with session.lock():
         m = session.manifest
