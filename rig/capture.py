@@ -22,7 +22,7 @@ import numpy as np
 from drivers.errors import DeviceError, LimitError, RigError
 
 from .config import RigConfig, parse_config
-from .factory import SimulatedRig, open_devices, start_simulators
+from .factory import SimulatedRig, open_devices, skip_exposure_waits, start_simulators
 from .geometry import RigGeometry, geometry_to_dict, rig_geometry
 from .plan import CaptureRequest, Step, budget, build_plan, steps_from_dicts
 from .runner import Devices, RunControl, RunResult, run_plan
@@ -111,8 +111,8 @@ def open_rig(config: RigConfig, *, sim_world: Any | None = None) -> Iterator[Rig
             raise ValueError("sim_world needs a simulated rig (device URLs 'sim'; see rig.capture.simulated)")
         devices = open_devices(config, geo, sim)
         stack.callback(devices.close)
-        if sim_world is not None and hasattr(devices.trigger, "wait_for_exposure"):
-            devices.trigger.wait_for_exposure = False   # the simulated camera renders at once
+        if sim_world is not None:
+            skip_exposure_waits(devices, sim)           # the simulated camera renders at once
         yield Rig(config, geo, devices, sim)
 
 

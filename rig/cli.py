@@ -64,6 +64,10 @@ def _sim_alone(args: argparse.Namespace) -> int:
 
 
 def _cmd_sim(args: argparse.Namespace) -> int:
+    if args.fault and "list" in args.fault:
+        from .sim_faults import describe
+        print(describe())
+        return 0
     if args.device:
         if args.fault:
             raise SystemExit("rig sim: --fault applies to the whole simulated rig (without --device)")

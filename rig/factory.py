@@ -6,6 +6,7 @@ a serial-line release (``"serial-release"``) by a pyserial ``loop://`` port whos
 the simulated camera (``SimulatedReleaseCable``)."""
 from __future__ import annotations
 
+import logging
 import tempfile
 import threading
 import time
@@ -29,7 +30,7 @@ from .geometry import RigGeometry, rig_geometry
 from .runner import Devices
 
 __all__ = ["SimulatedRig", "SimulatedReleaseCable", "open_camera", "open_devices", "open_trigger",
-           "rig_geometry", "start_simulators"]  # rig_geometry: re-exported for hil/ and the CLI
+           "rig_geometry", "skip_exposure_waits", "start_simulators"]  # rig_geometry: re-exported for hil/ and the CLI
 
 
 class _Stopper:
@@ -38,6 +39,14 @@ class _Stopper:
 
     def close(self) -> None:
         self.obj.stop()
+
+
+class _Cleanup:
+    def __init__(self, tmp: tempfile.TemporaryDirectory) -> None:
+        self.tmp = tmp
+
+    def close(self) -> None:
+        self.tmp.cleanup()
 
 
 @dataclass
@@ -105,7 +114,8 @@ class SimulatedReleaseCable(protocol_loop.Serial):
 
 def start_simulators(config: RigConfig, geometry: RigGeometry, workdir: Path | None = None
                      ) -> SimulatedRig:
-    """Start every simulator the config asks for (URL ``sim``)."""
+    """Start every simulator the config asks for (URL ``sim``). The simulated camera drops its frames under
+    ``workdir`` (default: a temporary folder removed by :meth:`SimulatedRig.close`)."""
     from simulators.camera import SensorModel, SimulatedCamera
     from simulators.led_sphere import LedSphereModel, Ticker
     from simulators.scene import SphereObject
@@ -114,7 +124,8 @@ def start_simulators(config: RigConfig, geometry: RigGeometry, workdir: Path | N
     from simulators.trigger import EsperTriggerModel, FakeHidTriggerBox
 
     sc, cam = config.scene, config.camera
-    drop = Path(workdir or tempfile.mkdtemp(prefix="sssrig-simcam-")) / "drop"
+    own = None if workdir is not None else tempfile.TemporaryDirectory(prefix="sssrig-simcam-")
+    drop = Path(workdir if workdir is not None else own.name) / "drop"
     obj = SphereObject(sc.center_mm, sc.radius_mm, sc.sigma_s_prime_per_mm, sc.sigma_a_per_mm, sc.eta,
                        tessellation=sc.tessellation)
     sensor = SensorModel(cam.gain_dn_per_unit, cam.black_level_dn, cam.white_level_dn,
@@ -130,6 +141,8 @@ def start_simulators(config: RigConfig, geometry: RigGeometry, workdir: Path | N
         "shape": sc.shape, "radius_mm": sc.radius_mm, "center_mm": list(sc.center_mm),
         "material": sc.material, "sigma_s_prime_per_mm": list(sc.sigma_s_prime_per_mm),
         "sigma_a_per_mm": list(sc.sigma_a_per_mm), "eta": sc.eta, "renderer": renderer})
+    if own is not None:
+        rig._closers.append(_Cleanup(own))    # the simulators' own folder goes with them (rig.close())
     rig._closers.append(simcam)
     rig.camera = simcam
     try:
@@ -168,7 +181,7 @@ def start_simulators(config: RigConfig, geometry: RigGeometry, workdir: Path | N
             gs = config.total_station
             model = GeoComModel(targets, station_xyz_mm=gs.station_xyz_mm,
                                 station_yaw_deg=gs.station_yaw_deg, noise_mm=gs.noise_mm,
-                                seed=sc.seed)
+                                seed=sc.seed, checksum=gs.crc)
             srv = serve(model, "tcp://127.0.0.1:0")
             rig._closers.append(srv)
             rig.urls["total_station"] = srv.url
@@ -179,6 +192,16 @@ def start_simulators(config: RigConfig, geometry: RigGeometry, workdir: Path | N
         rig.close()
         raise
     return rig
+
+
+def skip_exposure_waits(devices: Devices, sim: SimulatedRig | None) -> None:
+    """The simulated camera renders a frame at once: the trigger driver need not wait the exposure out, and
+    the simulated ESPER box is then not busy for it (it would answer the next ``S`` BUSY)."""
+    if hasattr(devices.trigger, "wait_for_exposure"):
+        devices.trigger.wait_for_exposure = False
+    server = sim.servers.get("trigger") if sim is not None else None
+    if server is not None and hasattr(server.device, "busy_during_exposure"):
+        server.device.busy_during_exposure = False
 
 
 def open_trigger(tc: TriggerConfig, sim: SimulatedRig | None = None) -> Trigger:
@@ -243,7 +266,8 @@ def open_devices(config: RigConfig, geometry: RigGeometry, sim: SimulatedRig | N
         opened.append(camera)
         ts = config.total_station
         feed = open_total_station(urls.get("total_station", ts.url), station_xyz_mm=ts.station_xyz_mm,
-                                  station_yaw_deg=ts.station_yaw_deg, targets=geometry.targets)
+                                  station_yaw_deg=ts.station_yaw_deg, targets=geometry.targets, checksum=ts.crc,
+                                  max_error_mm=ts.max_survey_error_mm, logger=logging.getLogger("geocompy"))
         opened.append(feed)
     except BaseException:
         for dev in opened:

@@ -445,6 +445,8 @@ class _Runner:
                 self._over_temperature(step, str(exc))
                 hold = str(exc)
             except DeviceBusy as exc:
+                if step.kind == "trigger":
+                    self._fired = False          # the box refused the shot: no frame is on its way
                 self._after_failure()
                 now = time.monotonic()
                 busy_t0 = now if busy_t0 is None else busy_t0

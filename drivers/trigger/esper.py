@@ -44,11 +44,13 @@ ERR_UNKNOWN_COMMAND = 1
 ERR_BAD_ARGUMENT = 2
 ERR_NO_BULB = 3                   # 'S' before any 'b<ms>'
 ERR_BUSY = 4                      # 'S' while an exposure is still running
+ERR_NO_OUTPUTS = 5                # 'S' while every output is disabled: nothing would fire
 ERROR_NAMES = {
     ERR_UNKNOWN_COMMAND: "UNKNOWN_COMMAND",
     ERR_BAD_ARGUMENT: "BAD_ARGUMENT",
     ERR_NO_BULB: "NO_BULB",
     ERR_BUSY: "BUSY",
+    ERR_NO_OUTPUTS: "NO_OUTPUTS",
 }
 
 
@@ -371,14 +373,24 @@ class EsperTrigger:
             self._configured = True
 
     def fire(self, exposure_s: float) -> None:
-        """Open the shutter for ``exposure_s`` (rounded to whole ms); return once the exposure is over."""
+        """Open the shutter for ``exposure_s`` (rounded to whole ms); return once the exposure is over.
+
+        A box that answers ``S`` with NO_OUTPUTS lost its configuration (power-cycled): it is configured again
+        and ``S`` sent once more. BUSY (an exposure still running) raises :class:`DeviceBusy`."""
         ms = bulb_ms_for(exposure_s, min_exposure_s=self.min_exposure_s, max_exposure_s=self.max_exposure_s)
         with self._lock:
             if not self._configured:
                 self.configure()
             self._expect_ack(SetBulb(ms))
             t_fire = time.monotonic()
-            self._expect_ack(Fire(), timeout_s=self.timeout_s + ms / 1000.0)
+            try:
+                self._expect_ack(Fire(), timeout_s=self.timeout_s + ms / 1000.0)
+            except DeviceRejected as exc:
+                if exc.code != ERR_NO_OUTPUTS:
+                    raise
+                self.configure()
+                t_fire = time.monotonic()
+                self._expect_ack(Fire(), timeout_s=self.timeout_s + ms / 1000.0)
             if self.wait_for_exposure:
                 remaining = t_fire + ms / 1000.0 - time.monotonic()
                 if remaining > 0:
