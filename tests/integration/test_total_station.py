@@ -455,9 +455,9 @@ def test_corrupted_replies_are_never_returned_as_good_with_the_crc_on():
     plausibility check no returned coordinate is wrong; without either, the same link returns wrong ones (so
     the check can fail). probes/geocom_corruption.py runs the 300-survey version."""
     probe = _corruption_probe()
-    on = probe.run(80, 0.005, crc=True, max_error_mm=50.0, seed=3)
-    assert on["silently_wrong"] == 0 and on["failed"] == 0 and on["retries"] > 0
-    off = probe.run(80, 0.005, crc=False, max_error_mm=None, seed=3)
+    on = probe.run(80, 0.01, crc=True, max_error_mm=50.0, seed=3)
+    assert on["silently_wrong"] == 0 and on["retries"] > 0 and on["failed"] < on["surveys"] // 10
+    off = probe.run(80, 0.01, crc=False, max_error_mm=None, seed=3)
     assert off["silently_wrong"] > 0
 
 
