@@ -13,6 +13,7 @@ import hashlib
 import os
 import tempfile
 import time
+import typing
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator
@@ -22,29 +23,30 @@ import numpy as np
 from drivers.errors import DeviceError, LimitError, RigError
 
 from .config import RigConfig, parse_config
-from .factory import SimulatedRig, open_devices, skip_exposure_waits, start_simulators
+from .factory import ROLES, SimulatedRig, open_devices, skip_exposure_waits, start_simulators
 from .geometry import RigGeometry, geometry_to_dict, rig_geometry
 from .plan import CaptureRequest, Step, budget, build_plan, steps_from_dicts
 from .runner import Devices, RunControl, RunResult, run_plan
 from .session import Session, SessionError, software_version, validate_session_name
 
-ROLES = ("sphere", "trigger", "camera", "total_station")
+
 
 
 def config_from_snapshot(snapshot: dict[str, Any], file: str) -> RigConfig:
     """Re-validate a manifest's config snapshot (``RigConfig.to_dict()``); errors name ``file`` and the field."""
-    from . import config as _config
+    from . import schema
 
     data = {k: v for k, v in snapshot.items() if k != "name"}
     data["rig"] = {"name": snapshot.get("name")}
-    # to_dict() writes every field; the parser refuses keys that belong to another driver: keep the driver's own
-    trig = data.get("trigger")
-    keys = getattr(_config, "TRIGGER_KEYS", {})
-    if isinstance(trig, dict) and trig.get("driver") in keys:
-        data["trigger"] = {k: v for k, v in trig.items() if k in keys[trig["driver"]]}
-    cam = data.get("camera")
-    if isinstance(cam, dict) and cam.get("driver") == "folder":
-        data["camera"] = {k: v for k, v in cam.items() if k not in getattr(_config, "_GPHOTO2_ONLY", ())}
+    # to_dict() writes every field of the dataclass; the schema refuses keys of another driver or shape: keep
+    # the keys of the variant the snapshot names
+    for section, tag in (("trigger", "driver"), ("camera", "driver"), ("object", "shape")):
+        table = data.get(section)
+        if not isinstance(table, dict):
+            continue
+        for model in schema.union_models(schema.RigFile, section):
+            if table.get(tag) in typing.get_args(model.model_fields[tag].annotation):
+                data[section] = {k: v for k, v in table.items() if k in model.model_fields}
     return parse_config(data, f"{file}: config")
 
 
@@ -309,29 +311,36 @@ def _health(role: str, dev: Any) -> dict[str, Any]:
 
 
 def device_report(config: RigConfig) -> list[dict[str, Any]]:
-    """Identify each device and read its health. One row per role: ``ok``, ``identity``, ``health`` or
-    ``error``. A rig that cannot be opened yields rows naming the error (the role whose URL it names)."""
+    """Open, identify and read the health of each device on its own: one unreachable device does not keep the
+    others from being checked. One row per role: ``ok``, ``identity``, ``health`` or ``error``, ``seconds``."""
+    from .factory import open_device
+
+    geo = rig_geometry(config)
     rows: list[dict[str, Any]] = []
-    try:
-        with open_rig(config) as rig:
-            for role, dev in zip(ROLES, (rig.devices.light, rig.devices.trigger, rig.devices.camera,
-                                         rig.devices.feed)):
-                row: dict[str, Any] = {"role": role, "url": rig.url(role), "ok": False}
-                t0 = time.perf_counter()
-                try:
-                    row["identity"] = dataclasses.asdict(dev.identify())
-                    row["health"] = _health(role, dev)
-                    row["ok"] = bool(row["health"].get("ok"))
-                except (DeviceError, OSError) as exc:
-                    row["error"] = f"{type(exc).__name__}: {exc}"
-                row["seconds"] = round(time.perf_counter() - t0, 4)
-                rows.append(row)
-    except (RigError, OSError) as exc:
-        msg = f"{type(exc).__name__}: {exc}"
-        urls = {"sphere": config.sphere.url, "trigger": config.trigger.url, "camera": config.camera.folder,
-                "total_station": config.total_station.url}
-        named = [r for r, u in urls.items() if u and u != "sim" and u in str(exc)]
+    urls = {"sphere": config.sphere.url, "trigger": config.trigger.url, "camera": config.camera.folder,
+            "total_station": config.total_station.url}
+    with contextlib.ExitStack() as stack:
+        sim = None
+        if uses_simulators(config):
+            work = stack.enter_context(tempfile.TemporaryDirectory(prefix="sssrig-sim-"))
+            sim = start_simulators(config, geo, Path(work))
+            stack.callback(sim.close)
         for role in ROLES:
-            rows.append({"role": role, "url": urls[role], "ok": False,
-                         "error": msg if (role in named or not named) else "not checked: the rig did not open"})
+            url = sim.urls.get(role, urls[role]) if sim is not None else urls[role]
+            row: dict[str, Any] = {"role": role, "url": url, "ok": False}
+            t0 = time.perf_counter()
+            dev = None
+            try:
+                dev = open_device(role, config, geo, sim)
+                row["identity"] = dataclasses.asdict(dev.identify())
+                row["health"] = _health(role, dev)
+                row["ok"] = bool(row["health"].get("ok"))
+            except (RigError, OSError, ValueError) as exc:
+                row["error"] = f"{type(exc).__name__}: {exc}"
+            finally:
+                if dev is not None:
+                    with contextlib.suppress(Exception):
+                        dev.close()
+            row["seconds"] = round(time.perf_counter() - t0, 4)
+            rows.append(row)
     return rows

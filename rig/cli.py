@@ -188,24 +188,27 @@ def _finish_run(args: argparse.Namespace, outcome) -> int:
 
 
 def _run_guarded(args: argparse.Namespace, fn) -> int:
+    """Run a capture/resume under the Ctrl-C handlers (first pauses, second aborts). The handlers stay until the
+    outcome is printed: a second Ctrl-C that arrives while the run is already ending at a pause is recorded
+    (never raised into the cleanup) and the session then ends as aborted, in the journal and the exit code."""
     from .runner import Aborted, signal_handlers
     control = _control(args)
-    try:
-        with signal_handlers(control):
+    with signal_handlers(control):
+        try:
             outcome = fn(control)
+            control.closing = True
             if control.abort_requested and outcome.result.status != "aborted":
-                # a second Ctrl-C after the run had already stopped at a pause: the operator asked for an
-                # abort, so the journal and the exit code say aborted (both are resumable)
                 outcome.session.append_event({"type": "stop", "status": "aborted", "reason": control.abort_reason,
                                               "lights_off": outcome.result.lights_off})
                 raise Aborted(control.abort_reason or "aborted", control.abort_signum)
-    except Aborted as exc:
-        print(f"rig {args.command}: aborted ({exc.reason}); the sphere was switched off; continue with "
-              "`rig resume SESSION`", file=sys.stderr)
-        if args.json:
-            _json_out({"status": "aborted", "reason": exc.reason})
-        return 128 + (exc.signum or signal.SIGINT)
-    return _finish_run(args, outcome)
+        except Aborted as exc:
+            control.closing = True
+            print(f"rig {args.command}: aborted ({exc.reason}); the sphere was switched off; continue with "
+                  "`rig resume SESSION`", file=sys.stderr)
+            if args.json:
+                _json_out({"status": "aborted", "reason": exc.reason})
+            return 128 + (exc.signum or signal.SIGINT)
+        return _finish_run(args, outcome)
 
 
 def _cmd_capture(args: argparse.Namespace) -> int:

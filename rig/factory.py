@@ -29,7 +29,7 @@ from .config import CameraConfig, RigConfig, TriggerConfig
 from .geometry import RigGeometry, rig_geometry
 from .runner import Devices
 
-__all__ = ["SimulatedRig", "SimulatedReleaseCable", "open_camera", "open_devices", "open_trigger",
+__all__ = ["ROLES", "SimulatedRig", "SimulatedReleaseCable", "open_camera", "open_device", "open_devices", "open_trigger",
            "rig_geometry", "skip_exposure_waits", "start_simulators"]  # rig_geometry: re-exported for hil/ and the CLI
 
 
@@ -245,30 +245,39 @@ def open_camera(cc: CameraConfig, sim: SimulatedRig | None = None) -> Camera:
     return FolderCamera(urls.get("camera", cc.folder), pattern=cc.pattern)
 
 
+ROLES = ("sphere", "trigger", "camera", "total_station")
+
+
+def open_device(role: str, config: RigConfig, geometry: RigGeometry, sim: SimulatedRig | None = None) -> Any:
+    """Open one device's driver (``role`` one of :data:`ROLES`) on its configured URL or its simulator's."""
+    urls = sim.urls if sim else {}
+    if role == "sphere":
+        s = config.sphere
+        limits = dict(max_total_current_a=s.max_total_current_a, max_mean_duty=s.max_mean_duty,
+                      led_current_a_per_channel=s.led_current_a_per_channel)
+        if s.driver.startswith("modbus"):
+            from drivers.led_sphere_modbus import open_led_sphere_modbus
+            return open_led_sphere_modbus(urls.get("sphere", s.url), **limits)
+        return open_led_sphere_serial(urls.get("sphere", s.url), **limits)
+    if role == "trigger":
+        return open_trigger(config.trigger, sim)
+    if role == "camera":
+        return open_camera(config.camera, sim)
+    if role == "total_station":
+        ts = config.total_station
+        return open_total_station(urls.get("total_station", ts.url), station_xyz_mm=ts.station_xyz_mm,
+                                  station_yaw_deg=ts.station_yaw_deg, targets=geometry.targets, checksum=ts.crc,
+                                  max_error_mm=ts.max_survey_error_mm, logger=logging.getLogger("geocompy"))
+    raise ValueError(f"unknown device role {role!r}; expected one of {', '.join(ROLES)}")
+
+
 def open_devices(config: RigConfig, geometry: RigGeometry, sim: SimulatedRig | None = None
                  ) -> Devices:
     """Open every device's driver on its configured URL (or its simulator's)."""
-    urls = sim.urls if sim else {}
-    s = config.sphere
     opened: list[Any] = []
-    limits = dict(max_total_current_a=s.max_total_current_a, max_mean_duty=s.max_mean_duty,
-                  led_current_a_per_channel=s.led_current_a_per_channel)
     try:
-        if s.driver.startswith("modbus"):
-            from drivers.led_sphere_modbus import open_led_sphere_modbus
-            light = open_led_sphere_modbus(urls.get("sphere", s.url), **limits)
-        else:
-            light = open_led_sphere_serial(urls.get("sphere", s.url), **limits)
-        opened.append(light)
-        trigger = open_trigger(config.trigger, sim)
-        opened.append(trigger)
-        camera = open_camera(config.camera, sim)
-        opened.append(camera)
-        ts = config.total_station
-        feed = open_total_station(urls.get("total_station", ts.url), station_xyz_mm=ts.station_xyz_mm,
-                                  station_yaw_deg=ts.station_yaw_deg, targets=geometry.targets, checksum=ts.crc,
-                                  max_error_mm=ts.max_survey_error_mm, logger=logging.getLogger("geocompy"))
-        opened.append(feed)
+        for role in ROLES:
+            opened.append(open_device(role, config, geometry, sim))
     except BaseException:
         for dev in opened:
             try:
@@ -276,4 +285,4 @@ def open_devices(config: RigConfig, geometry: RigGeometry, sim: SimulatedRig | N
             except Exception:
                 pass
         raise
-    return Devices(light, trigger, camera, feed)
+    return Devices(*opened)

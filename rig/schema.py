@@ -23,7 +23,8 @@ from pydantic import AllowInfNan, BaseModel, ConfigDict, Field, Strict, Validati
 
 from drivers.errors import ConfigError
 
-__all__ = ["RigFile", "validate", "model_from_dataclass", "did_you_mean", "to_config_error", "MATERIAL_NAMES"]
+__all__ = ["RigFile", "validate", "model_from_dataclass", "did_you_mean", "to_config_error", "union_models",
+           "MATERIAL_NAMES"]
 
 # ----------------------------------------------------------------------------------------------- scalar types
 Num = Annotated[float, Strict(), AllowInfNan(False)]          # an int is taken (TOML 1 == 1.0), a string is not
@@ -275,7 +276,7 @@ def _unwrap(tp: Any, value: Any) -> Any:
     return tp
 
 
-def _union_models(root: type[BaseModel], name: Any) -> list[type[BaseModel]]:
+def union_models(root: type[BaseModel], name: Any) -> list[type[BaseModel]]:
     field = root.model_fields.get(name)
     if field is None:
         return []
@@ -370,7 +371,7 @@ def to_config_error(exc: ValidationError, data: Any, file: str, root: type[BaseM
         tag = _UNIONS.get(loc[0]) if len(loc) == 2 else None
         if owner is not None and tag in owner.model_fields:
             extra = f" for {tag} {_get(data, (loc[0], tag))!r}"
-            others = [m for m in _union_models(root, loc[0]) if m is not owner and loc[-1] in m.model_fields]
+            others = [m for m in union_models(root, loc[0]) if m is not owner and loc[-1] in m.model_fields]
             if others:
                 listing = f" (it is a key of {tag} " + ", ".join(
                     repr(typing.get_args(m.model_fields[tag].annotation)[0]) for m in others) + ")"
