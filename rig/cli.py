@@ -326,10 +326,15 @@ class _Parser(argparse.ArgumentParser):
         raise UsageError(f"{self.prog}: {message}", self.format_usage())
 
 
-class UsageError(Exception):
+class UsageError(SystemExit):
+    """Bad command-line arguments (exit code 2, as argparse's own)."""
+
     def __init__(self, message: str, usage: str) -> None:
-        super().__init__(message)
-        self.usage = usage
+        super().__init__(2)
+        self.message, self.usage = message, usage
+
+    def __str__(self) -> str:
+        return self.message
 
 
 def _common() -> argparse.ArgumentParser:
@@ -526,7 +531,7 @@ def main(argv: list[str] | None = None) -> int:
         if want_json:
             _json_out(_error_json(exc, "usage"))
         else:
-            print(exc.usage + str(exc), file=sys.stderr, end="\n")
+            print(exc.usage + exc.message, file=sys.stderr)
         return 2
     from .feedback import Feedback, setup_logging
     setup_logging(getattr(args, "verbose", 0), getattr(args, "log_level", None))
