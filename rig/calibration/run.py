@@ -139,6 +139,13 @@ def run_step(step: str, config: RigConfig, *, out: str | Path, sessions_dir: str
     if world is not None and cap.simulated:
         ctx.prior = load_calibration(out)
         report.truth = mod.compare(ctx, output.result)
+        # the simulated truth of every quantity, k and the albedo scale included (they follow from the reference
+        # material and the sensor gain, so the manifest's ``truth`` of the world does not hold them)
+        import json
+
+        from ..session import _json_default, atomic_write_bytes
+        atomic_write_bytes(cap.session.root / "truth_comparison.json",
+                           (json.dumps(report.truth, indent=2, default=_json_default) + "\n").encode())
     return report
 
 

@@ -12,7 +12,7 @@ Every section carries ``provenance``: ``created`` (ISO time), ``session`` (the c
 frames are in), ``software_version``, ``config`` (the rig config file), ``inputs`` (which earlier sections and
 design values it used) and, for simulated runs, ``simulated: true``. ``revision`` counts writes of the file;
 each section records the revision that wrote it, and the previous file is kept as
-``<name>.history/r<revision>.json``. Writes are atomic (temporary file, fsync, rename).
+``<name>.history/rNNNN.json`` (four-digit revision, ``r0001.json``). Writes are atomic (temporary file, fsync, rename).
 
 :func:`load_calibration` validates the document and raises :class:`CalibrationError` naming the file and the
 dotted field; :class:`Calibration` gives the estimators what they consume (a ``PinholeCamera``, the lens
