@@ -135,6 +135,9 @@ def start_simulators(config: RigConfig, geometry: RigGeometry, workdir: Path | N
     simcam = SimulatedCamera(obj, geometry.camera, geometry.led_positions_mm,
                              config.sphere.led_intensity, drop, sensor, seed=sc.seed, render_mode=sc.render,
                              mc=MCSettings(spp=sc.mc_spp, seed=sc.seed))
+    if sc.render == "mc":
+        from .feedback import numba_notice
+        numba_notice()
     renderer = ("the Jensen dipole (fast renderer)" if sc.render == "fast" else
                 f"Monte Carlo light transport ({sc.mc_spp} paths per pixel)")
     rig = SimulatedRig({}, drop, truth={

@@ -21,6 +21,7 @@ from typing import TextIO
 __all__ = ["Feedback", "setup_logging", "numba_notice", "LOGGERS"]
 
 LOGGERS = ("rig", "drivers", "simulators", "pymodbus", "geocompy")
+_NOTICED = False
 
 
 class Feedback:
@@ -135,11 +136,13 @@ def setup_logging(verbosity: int = 0, level: str | None = None) -> int:
 def numba_notice(say: object = None) -> bool:
     """Print one line (through ``say``, else stderr) if numba has not yet cached the Monte Carlo kernels, whose
     first compile takes ~20 s. Returns True if it printed."""
+    global _NOTICED
     import simulators.mc as mc
 
     cache = Path(mc.__file__).parent / "__pycache__"
-    if cache.is_dir() and any(cache.glob("*.nbi")):
+    if _NOTICED or (cache.is_dir() and any(cache.glob("*.nbi"))):
         return False
+    _NOTICED = True
     msg = "compiling the Monte Carlo kernels with numba (first run only, ~20 s; cached afterwards)"
     if callable(say):
         say(msg)
