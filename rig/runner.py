@@ -226,8 +226,11 @@ def signal_handlers(control: RunControl) -> Iterator[RunControl]:
 class ProgressBar:
     """A progress bar with ETA for :func:`run_plan`'s ``progress`` callback.
 
-    ETA = remaining nominal time x (measured / nominal so far). On a terminal one line is redrawn; otherwise a
-    line is printed per frame.
+    ETA: each remaining step takes the mean measured duration of the steps of its kind run so far (its nominal
+    duration until one has run), less the time already spent in the current step. Per kind, because kinds differ
+    in how far they are from their nominal time (a simulated survey is instant, a simulated frame renders for
+    seconds): one pace for all read 0:00 long before the end (issue 18). On a terminal one line is redrawn;
+    otherwise a line is printed per frame.
     """
 
     def __init__(self, steps: Sequence[Step], stream: TextIO | None = None, *, width: int = 28,
@@ -241,14 +244,17 @@ class ProgressBar:
         self._t0: float | None = None
         self._nominal_run = 0.0
         self._last: int | None = None
+        self._t_step: float | None = None                   # when the step in progress started
+        self._measured: dict[str, list[float]] = {}         # kind -> measured durations of the steps run
         self.lines: list[str] = []
         self.on_close: Callable[[], None] | None = None     # e.g. give the terminal line back to rig.feedback
 
     def eta_s(self, index: int, now: float) -> float:
-        remaining = sum(s.nominal_s for s in self.steps[index:])
-        if self._t0 is None or self._nominal_run < 0.5:
-            return remaining
-        return remaining * (now - self._t0) / self._nominal_run
+        mean = {k: sum(v) / len(v) for k, v in self._measured.items()}
+        remaining = sum(mean.get(s.kind, s.nominal_s) for s in self.steps[index:])
+        if self._t_step is not None and index == self._last:
+            remaining -= min(now - self._t_step, mean.get(self.steps[index].kind, self.steps[index].nominal_s))
+        return max(0.0, remaining)
 
     def render(self, index: int, step: Step, now: float) -> str:
         done_s = sum(s.nominal_s for s in self.steps[:index])
@@ -264,9 +270,11 @@ class ProgressBar:
         now = time.monotonic()
         if self._t0 is None and not skipped:
             self._t0 = now
-        if self._last is not None and not skipped and self._t0 is not None and self._last < index:
+        if self._last is not None and self._t_step is not None and self._last < index:
             self._nominal_run += self.steps[self._last].nominal_s
+            self._measured.setdefault(self.steps[self._last].kind, []).append(now - self._t_step)
         self._last = None if skipped else index
+        self._t_step = None if skipped else now
         line = self.render(index, step, now)
         self.lines.append(line)
         if self.tty:

@@ -414,6 +414,29 @@ def test_progress_bar_counts_frames_and_gives_an_eta():
     assert pct == sorted(pct) and pct[-1] < 100
 
 
+def test_progress_eta_learns_each_step_kinds_pace():
+    """The ETA prices each remaining step at the measured mean of its kind: surveys that are instant and frames
+    that take 3x their nominal time (issue 18: one pace for all read 0:00 ten seconds early)."""
+    cfg = small_config()
+    steps = build_plan(cfg, rig_geometry(cfg).led_directions, estimate=("gradients", "single-image"))
+    bar = ProgressBar(steps, io.StringIO(), tty=False)
+    cost = [0.0 if st.kind == "survey" else 3.0 * st.nominal_s for st in steps]
+    clock = [0.0]
+    real = time.monotonic
+    time.monotonic = lambda: clock[0]
+    seen = []
+    try:
+        for st in steps:
+            bar(st.index, len(steps), st)
+            if st.kind == "fetch":
+                seen.append((bar.eta_s(st.index, clock[0]), sum(cost[st.index:])))
+            clock[0] += cost[st.index]
+    finally:
+        time.monotonic = real
+    later = seen[len(seen) // 2:]
+    assert all(0.6 * truth <= eta <= 1.6 * truth for eta, truth in later), seen
+
+
 def test_control_defers_a_signal_abort_out_of_journal_writes():
     control = RunControl()
     with pytest.raises(Aborted, match="SIGTERM"):
