@@ -238,6 +238,45 @@ def test_second_ctrl_c_within_0_3_s_always_aborts(simrig, delay_s):
     assert "Traceback" not in err and not _sphere_status(urls["sphere"]).lit
 
 
+def test_rig_sim_fault_led_fault_pauses_a_capture_and_busy_is_ridden_out(tmp_path):
+    """`rig sim --fault sphere:led_fault --fault trigger:busy=3` in its own process, `rig capture` against it:
+    three BUSY answers are asked again on the same connection (busy events, no lost/reconnected), then the LED
+    fault bit pauses the capture with a `fault` journal event (exit 3, sphere dark)."""
+    (tmp_path / "small.toml").write_text(_small_text())
+    proc = subprocess.Popen([sys.executable, "-m", "rig.cli", "sim", "--config", "small.toml", "--fault",
+                             "sphere:led_fault", "--fault", "trigger:busy=3", "--json"], cwd=tmp_path, env=_env(),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        head = ""
+        while not head.rstrip().endswith("}"):
+            line = proc.stdout.readline()
+            assert line, proc.stderr.read()
+            head += line
+        info = json.loads(head)
+        assert len(info["faults"]) == 2 and info["faults"][0].startswith("sphere:led_fault")
+        urls = {**info["urls"]}
+        (tmp_path / "rig.toml").write_text(_point_at(_small_text(), urls))
+        res = _rig("capture", "--config", "rig.toml", "--sessions", "sessions", "--name", "faulty", "--json",
+                   "--no-progress", cwd=tmp_path)
+        assert res.returncode == 3, res.stderr
+        out = json.loads(res.stdout)
+        assert out["status"] == "paused" and "LED fault" in out["reason"] and out["reconnects"] == 0
+        s = Session.open(tmp_path / "sessions" / "faulty")
+        kinds = [e["type"] for e in s.events()]
+        (fault,) = [e for e in s.events() if e["type"] == "fault"]
+        assert fault["fault"] == "led_fault" and fault["action"] == "pause"
+        assert "pause" in kinds and "lost" not in kinds and "reconnected" not in kinds
+        busy = [e for e in s.events() if e["type"] == "busy"]
+        assert len(busy) == 3 and all("BUSY" in e["error"] for e in busy)
+        assert s.status() == "paused" and not _sphere_status(urls["sphere"]).lit
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+
+
 def test_devices_checks_each_device_on_its_own(simrig):
     """One unreachable device (the sphere's port does not exist) fails alone; the others are identified."""
     work, _ = simrig
