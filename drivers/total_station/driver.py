@@ -46,12 +46,27 @@ __all__ = ["SurveyImplausible", "TotalStationFeed", "open_total_station", "rig_t
 
 Xyz = tuple[float, float, float]
 
-# COM_FAILED is what geocompy reports for any other exception in an exchange: in practice a reply it could
-# not even decode as text (a corrupted byte >= 0x80); a dead link shows as COM_CANT_SEND on the next exchange.
-# COM_SRVR_RX_CHECKSUM_ERROR: the instrument received our request garbled.
+# COM_SRVR_RX_CHECKSUM_ERROR: the instrument received our request garbled. COM_FAILED is geocompy's code for
+# any other exception in an exchange: a reply it could not decode as ASCII (a corrupted byte >= 0x80; a
+# ProtocolError) or a port that failed (ConnectionLost); _Connection tells which.
 _PROTOCOL_CODES = frozenset({codec.COM_CANT_DECODE, codec.COM_CLNT_RX_CHECKSUM_ERROR, codec.COM_TR_ID_MISMATCH,
-                             codec.COM_SRVR_RX_CHECKSUM_ERROR, codec.COM_FAILED})
-_LINK_CODES = frozenset({codec.COM_CANT_SEND})
+                             codec.COM_SRVR_RX_CHECKSUM_ERROR})
+_LINK_CODES = frozenset({codec.COM_CANT_SEND, codec.COM_FAILED})
+
+
+class _Connection(SerialConnection):
+    """geocompy's ``SerialConnection`` that remembers whether the last exchange failed on an undecodable reply
+    (``garbled``): geocompy turns every exception into COM_FAILED, and a garbled reply is not a lost link."""
+
+    garbled = False
+
+    def exchange(self, cmd: str) -> str:
+        self.garbled = False
+        try:
+            return super().exchange(cmd)
+        except UnicodeDecodeError:
+            self.garbled = True
+            raise
 
 
 class SurveyImplausible(ProtocolError):
@@ -300,7 +315,7 @@ class TotalStationFeed:
         if code == codec.COM_TIMEDOUT:
             self._resync()
             raise DeviceTimeout(f"total station did not answer {what} within {self.timeout_s:.3g} s")
-        if code in _PROTOCOL_CODES:
+        if code in _PROTOCOL_CODES or (code == codec.COM_FAILED and getattr(self._conn, "garbled", False)):
             self._resync()
             raise ProtocolError(f"total station: bad reply to {what} ({name}): {resp.response!r}")
         if code in _LINK_CODES:
@@ -322,7 +337,7 @@ def open_total_station(url: str, *, station_xyz_mm: Xyz, station_yaw_deg: float 
     instrument answers on it."""
     port = open_transport(url, baudrate=baudrate, timeout_s=timeout_s)
     try:
-        connection = SerialConnection(port, logger=logger)
+        connection = _Connection(port, logger=logger)
         geocom = GeoCom(connection, logger=logger, checksum=checksum, attempts=connect_attempts)
     except ConnectionRefusedError as exc:
         port.close()
