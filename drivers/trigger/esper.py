@@ -289,6 +289,7 @@ class EsperTrigger:
         self.wait_for_exposure = wait_for_exposure
         self.name = name
         self._configured = False
+        self._busy_until = float("-inf")
         self._lock = threading.RLock()
         self._closed = False
 
@@ -376,7 +377,9 @@ class EsperTrigger:
         """Open the shutter for ``exposure_s`` (rounded to whole ms); return once the exposure is over.
 
         A box that answers ``S`` with NO_OUTPUTS lost its configuration (power-cycled): it is configured again
-        and ``S`` sent once more. BUSY (an exposure still running) raises :class:`DeviceBusy`."""
+        and ``S`` sent once more. BUSY while our own previous exposure may still be running on the box (it started
+        when the box answered, which is after we timed it from) is waited out once; any other BUSY raises
+        :class:`DeviceBusy`."""
         ms = bulb_ms_for(exposure_s, min_exposure_s=self.min_exposure_s, max_exposure_s=self.max_exposure_s)
         with self._lock:
             if not self._configured:
@@ -386,11 +389,16 @@ class EsperTrigger:
             try:
                 self._expect_ack(Fire(), timeout_s=self.timeout_s + ms / 1000.0)
             except DeviceRejected as exc:
-                if exc.code != ERR_NO_OUTPUTS:
+                own = exc.code == ERR_BUSY and time.monotonic() < self._busy_until + 0.05
+                if exc.code != ERR_NO_OUTPUTS and not own:
                     raise
-                self.configure()
+                if own:
+                    time.sleep(max(0.0, self._busy_until - time.monotonic()) + 0.002)
+                else:
+                    self.configure()
                 t_fire = time.monotonic()
                 self._expect_ack(Fire(), timeout_s=self.timeout_s + ms / 1000.0)
+            self._busy_until = time.monotonic() + ms / 1000.0      # the latest our exposure can end on the box
             if self.wait_for_exposure:
                 remaining = t_fire + ms / 1000.0 - time.monotonic()
                 if remaining > 0:

@@ -99,15 +99,22 @@ def test_driver_reconfigures_a_power_cycled_box(tmp_path):
         server.close()
 
 
-def test_driver_raises_busy_for_an_overlapping_fire_over_a_pty():
+def test_driver_busy_over_a_pty():
+    """A box busy for a reason of its own raises DeviceBusy (the runner asks again with backoff); a BUSY caused by
+    our own previous exposure, still running on the box, is waited out once and the shot fires."""
     fired: list[float] = []
     server, model = start_esper_simulator("pty", fired.append)
     try:
         with open_esper_trigger(server.url, timeout_s=0.5, wait_for_exposure=False) as trig:
-            trig.fire(0.5)
+            model.busy_next = 1
             with pytest.raises(DeviceBusy) as err:
-                trig.fire(0.5)                            # the host did not wait the exposure out
-            assert err.value.code == 4 and fired == [0.5]
+                trig.fire(0.2)
+            assert err.value.code == 4 and fired == []
+            trig.fire(0.2)
+            t0 = time.monotonic()
+            trig.fire(0.2)                     # the host did not wait the first exposure out: BUSY, waited out
+            assert fired == [0.2, 0.2] and time.monotonic() - t0 >= 0.15
+            assert model.commands.count(b"S") == 4            # refused, fired, refused (busy), fired
     finally:
         server.close()
 
