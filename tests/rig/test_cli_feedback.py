@@ -72,3 +72,18 @@ def test_sim_fault_specs():
         assert err.value.field == field
     with pytest.raises(ConfigError, match="did you mean 'led_fault'"):
         parse_faults(["sphere:led_falt"])
+
+
+def test_simulators_remove_their_own_temporary_folder():
+    """start_simulators without a work folder makes its own and removes it on close (issue 18: `rig sim` left a
+    /tmp/sssrig-simcam-* folder per run)."""
+    from rig.config import load_config
+    from rig.factory import start_simulators
+    from rig.geometry import rig_geometry
+
+    cfg = load_config()
+    sim = start_simulators(cfg, rig_geometry(cfg))
+    own = sim.drop_folder.parent
+    assert own.name.startswith("sssrig-simcam-") and own.is_dir()
+    sim.close()
+    assert not own.exists()
