@@ -13,6 +13,7 @@ import hashlib
 import os
 import tempfile
 import time
+import typing
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Iterator
@@ -22,29 +23,30 @@ import numpy as np
 from drivers.errors import DeviceError, LimitError, RigError
 
 from .config import RigConfig, parse_config
-from .factory import SimulatedRig, open_devices, start_simulators
+from .factory import ROLES, SimulatedRig, open_devices, skip_exposure_waits, start_simulators
 from .geometry import RigGeometry, geometry_to_dict, rig_geometry
 from .plan import CaptureRequest, Step, budget, build_plan, steps_from_dicts
 from .runner import Devices, RunControl, RunResult, run_plan
 from .session import Session, SessionError, software_version, validate_session_name
 
-ROLES = ("sphere", "trigger", "camera", "total_station")
+
 
 
 def config_from_snapshot(snapshot: dict[str, Any], file: str) -> RigConfig:
     """Re-validate a manifest's config snapshot (``RigConfig.to_dict()``); errors name ``file`` and the field."""
-    from . import config as _config
+    from . import schema
 
     data = {k: v for k, v in snapshot.items() if k != "name"}
     data["rig"] = {"name": snapshot.get("name")}
-    # to_dict() writes every field; the parser refuses keys that belong to another driver: keep the driver's own
-    trig = data.get("trigger")
-    keys = getattr(_config, "TRIGGER_KEYS", {})
-    if isinstance(trig, dict) and trig.get("driver") in keys:
-        data["trigger"] = {k: v for k, v in trig.items() if k in keys[trig["driver"]]}
-    cam = data.get("camera")
-    if isinstance(cam, dict) and cam.get("driver") == "folder":
-        data["camera"] = {k: v for k, v in cam.items() if k not in getattr(_config, "_GPHOTO2_ONLY", ())}
+    # to_dict() writes every field of the dataclass; the schema refuses keys of another driver or shape: keep
+    # the keys of the variant the snapshot names
+    for section, tag in (("trigger", "driver"), ("camera", "driver"), ("object", "shape")):
+        table = data.get(section)
+        if not isinstance(table, dict):
+            continue
+        for model in schema.union_models(schema.RigFile, section):
+            if table.get(tag) in typing.get_args(model.model_fields[tag].annotation):
+                data[section] = {k: v for k, v in table.items() if k in model.model_fields}
     return parse_config(data, f"{file}: config")
 
 
@@ -111,8 +113,8 @@ def open_rig(config: RigConfig, *, sim_world: Any | None = None) -> Iterator[Rig
             raise ValueError("sim_world needs a simulated rig (device URLs 'sim'; see rig.capture.simulated)")
         devices = open_devices(config, geo, sim)
         stack.callback(devices.close)
-        if sim_world is not None and hasattr(devices.trigger, "wait_for_exposure"):
-            devices.trigger.wait_for_exposure = False   # the simulated camera renders at once
+        if sim_world is not None:
+            skip_exposure_waits(devices, sim)           # the simulated camera renders at once
         yield Rig(config, geo, devices, sim)
 
 
@@ -164,11 +166,19 @@ class Outcome:
                 "notes": self.notes}
 
 
+def runner_options(cfg: RigConfig) -> dict[str, Any]:
+    """:func:`rig.runner.run_plan` options from the config's ``[sphere]`` watchdog and ``[runner]`` table."""
+    r = cfg.runner
+    return {"watchdog_s": cfg.sphere.watchdog_s or None, "retries": r.retries, "busy_timeout_s": r.busy_timeout_s,
+            "on_led_fault": r.on_led_fault, "on_over_temperature": r.on_over_temperature,
+            "lost_timeout_s": r.lost_timeout_s, "max_hold_s": r.max_hold_s}
+
+
 def _run(session: Session, steps: list[Step], rig: Rig, led_directions: np.ndarray, *,
          control: RunControl | None, progress: Callable[..., None] | None, say: Callable[[str], None],
          run_options: dict[str, Any] | None) -> RunResult:
     cfg = rig.config
-    opts = {"watchdog_s": cfg.sphere.watchdog_s or None, **(run_options or {})}
+    opts = {**runner_options(cfg), **(run_options or {})}
     return run_plan(steps, rig.devices, session, led_directions=led_directions,
                     pattern_peak=cfg.sphere.pattern_peak, fetch_timeout_s=cfg.camera.fetch_timeout_s,
                     progress=progress, control=control, reopen=rig.reopen, say=say, **opts)
@@ -219,12 +229,23 @@ def capture(config: RigConfig, request: CaptureRequest, *, sessions_dir: str | P
 
 def resume(root: str | Path, *, simulate: bool = False, control: RunControl | None = None,
            progress_factory: Callable[[list[Step]], Any] | None = None, say: Callable[[str], None] | None = None,
-           run_options: dict[str, Any] | None = None) -> Outcome:
+           run_options: dict[str, Any] | None = None, accept_faults: Any = ()) -> Outcome:
     """Continue a session: only the steps without a journalled frame or survey run (and the setup they need).
 
     The plan, config and LED geometry come from the session's manifest, so the resumed frames are taken exactly
-    as planned. A session already complete is left alone."""
+    as planned. A session already complete is left alone. ``accept_faults`` (e.g. ``["led_fault"]``): sphere
+    faults the operator has checked; they are journalled but no longer pause the run."""
+    from .runner import FAULT_NAMES
+
     say = say or (lambda m: None)
+    mask = 0
+    for name in accept_faults or ():
+        bits = [b for b, n in FAULT_NAMES.items() if n == name]
+        if not bits:
+            raise ValueError(f"accept_faults: unknown fault {name!r}; expected one of {', '.join(FAULT_NAMES.values())}")
+        mask |= bits[0]
+    if mask:
+        run_options = {**(run_options or {}), "accept_faults": mask}
     session = Session.open(root)
     with session.lock():
         m = session.manifest
@@ -290,29 +311,36 @@ def _health(role: str, dev: Any) -> dict[str, Any]:
 
 
 def device_report(config: RigConfig) -> list[dict[str, Any]]:
-    """Identify each device and read its health. One row per role: ``ok``, ``identity``, ``health`` or
-    ``error``. A rig that cannot be opened yields rows naming the error (the role whose URL it names)."""
+    """Open, identify and read the health of each device on its own: one unreachable device does not keep the
+    others from being checked. One row per role: ``ok``, ``identity``, ``health`` or ``error``, ``seconds``."""
+    from .factory import open_device
+
+    geo = rig_geometry(config)
     rows: list[dict[str, Any]] = []
-    try:
-        with open_rig(config) as rig:
-            for role, dev in zip(ROLES, (rig.devices.light, rig.devices.trigger, rig.devices.camera,
-                                         rig.devices.feed)):
-                row: dict[str, Any] = {"role": role, "url": rig.url(role), "ok": False}
-                t0 = time.perf_counter()
-                try:
-                    row["identity"] = dataclasses.asdict(dev.identify())
-                    row["health"] = _health(role, dev)
-                    row["ok"] = bool(row["health"].get("ok"))
-                except (DeviceError, OSError) as exc:
-                    row["error"] = f"{type(exc).__name__}: {exc}"
-                row["seconds"] = round(time.perf_counter() - t0, 4)
-                rows.append(row)
-    except (RigError, OSError) as exc:
-        msg = f"{type(exc).__name__}: {exc}"
-        urls = {"sphere": config.sphere.url, "trigger": config.trigger.url, "camera": config.camera.folder,
-                "total_station": config.total_station.url}
-        named = [r for r, u in urls.items() if u and u != "sim" and u in str(exc)]
+    urls = {"sphere": config.sphere.url, "trigger": config.trigger.url, "camera": config.camera.folder,
+            "total_station": config.total_station.url}
+    with contextlib.ExitStack() as stack:
+        sim = None
+        if uses_simulators(config):
+            work = stack.enter_context(tempfile.TemporaryDirectory(prefix="sssrig-sim-"))
+            sim = start_simulators(config, geo, Path(work))
+            stack.callback(sim.close)
         for role in ROLES:
-            rows.append({"role": role, "url": urls[role], "ok": False,
-                         "error": msg if (role in named or not named) else "not checked: the rig did not open"})
+            url = sim.urls.get(role, urls[role]) if sim is not None else urls[role]
+            row: dict[str, Any] = {"role": role, "url": url, "ok": False}
+            t0 = time.perf_counter()
+            dev = None
+            try:
+                dev = open_device(role, config, geo, sim)
+                row["identity"] = dataclasses.asdict(dev.identify())
+                row["health"] = _health(role, dev)
+                row["ok"] = bool(row["health"].get("ok"))
+            except (RigError, OSError, ValueError) as exc:
+                row["error"] = f"{type(exc).__name__}: {exc}"
+            finally:
+                if dev is not None:
+                    with contextlib.suppress(Exception):
+                        dev.close()
+            row["seconds"] = round(time.perf_counter() - t0, 4)
+            rows.append(row)
     return rows

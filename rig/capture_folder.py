@@ -70,8 +70,9 @@ class _Table:
         self.file, self.data, self.prefix = file, data, prefix
         unknown = sorted(set(data) - set(allowed))
         if unknown:
-            raise ConfigError(file, self.key(unknown[0]), "one of the documented keys: " + ", ".join(allowed),
-                              unknown[0])
+            from .schema import did_you_mean
+            raise ConfigError(file, self.key(unknown[0]), "one of the documented keys"
+                              + did_you_mean(unknown[0], allowed) + ": " + ", ".join(allowed), unknown[0])
 
     def key(self, k: str) -> str:
         return f"{self.prefix}{k}"

@@ -31,8 +31,7 @@ def _add_request(p: argparse.ArgumentParser) -> None:
 
 def _cmd_demo(args: argparse.Namespace) -> int:
     from .demo import format_table, run_demo
-    result = run_demo(config_path=args.config, sessions_dir=args.sessions, name=args.name,
-                      log=None if args.json else (lambda m: print(m, file=sys.stderr, flush=True)))
+    result = run_demo(config_path=args.config, sessions_dir=args.sessions, name=args.name, log=_say(args))
     if args.json:
         from .session import _json_default
         print(json.dumps(result, indent=2, default=_json_default))
@@ -65,14 +64,32 @@ def _sim_alone(args: argparse.Namespace) -> int:
 
 
 def _cmd_sim(args: argparse.Namespace) -> int:
+    if args.fault and "list" in args.fault:
+        from .sim_faults import describe
+        print(describe())
+        return 0
     if args.device:
+        if args.fault:
+            raise SystemExit("rig sim: --fault applies to the whole simulated rig (without --device)")
         return _sim_alone(args)
+    import tempfile
+
     from .factory import rig_geometry, start_simulators
+    from .sim_faults import apply_faults, parse_faults
     cfg = load_config(args.config)
-    sim = start_simulators(cfg, rig_geometry(cfg))
+    faults = parse_faults(args.fault or [])
+    work = tempfile.TemporaryDirectory(prefix="sssrig-sim-")
+    sim = start_simulators(cfg, rig_geometry(cfg), Path(work.name))
     try:
-        for role, url in sim.urls.items():
-            print(f"{role:<14} {url}", flush=True)
+        applied = apply_faults(sim, faults)
+        if args.json:
+            _json_out({"ok": True, "urls": sim.urls, "faults": applied, "drop_folder": str(sim.drop_folder)})
+            sys.stdout.flush()
+        else:
+            for role, url in sim.urls.items():
+                print(f"{role:<14} {url}", flush=True)
+            for line in applied:
+                print(f"fault          {line}", flush=True)
         print("simulators running; Ctrl-C to stop", file=sys.stderr, flush=True)
         stop = []
         signal.signal(signal.SIGTERM, lambda *a: stop.append(1))
@@ -83,6 +100,7 @@ def _cmd_sim(args: argparse.Namespace) -> int:
         pass
     finally:
         sim.close()
+        work.cleanup()
     return 0
 
 
@@ -114,14 +132,24 @@ def _json_out(obj) -> None:
 
 
 def _say(args: argparse.Namespace):
-    return lambda m: print(m, file=sys.stderr, flush=True)
+    """Stage messages on stderr (never stdout: ``--json`` output stays clean); silent with ``--quiet``."""
+    fb = getattr(args, "feedback", None)
+    return fb if fb is not None else (lambda m: print(m, file=sys.stderr, flush=True))
 
 
 def _progress_factory(args: argparse.Namespace):
-    if args.json or args.no_progress:
+    if args.no_progress or getattr(args, "quiet", False):
         return None
     from .runner import ProgressBar
-    return lambda steps: ProgressBar(steps, sys.stderr)
+    fb = getattr(args, "feedback", None)
+
+    def make(steps):
+        bar = ProgressBar(steps, sys.stderr)
+        if fb is not None:
+            fb.suspend()
+            bar.on_close = fb.resume
+        return bar
+    return make
 
 
 def _control(args: argparse.Namespace):
@@ -160,18 +188,27 @@ def _finish_run(args: argparse.Namespace, outcome) -> int:
 
 
 def _run_guarded(args: argparse.Namespace, fn) -> int:
+    """Run a capture/resume under the Ctrl-C handlers (first pauses, second aborts). The handlers stay until the
+    outcome is printed: a second Ctrl-C that arrives while the run is already ending at a pause is recorded
+    (never raised into the cleanup) and the session then ends as aborted, in the journal and the exit code."""
     from .runner import Aborted, signal_handlers
     control = _control(args)
-    try:
-        with signal_handlers(control):
+    with signal_handlers(control):
+        try:
             outcome = fn(control)
-    except Aborted as exc:
-        print(f"rig {args.command}: aborted ({exc.reason}); the sphere was switched off; continue with "
-              "`rig resume SESSION`", file=sys.stderr)
-        if args.json:
-            _json_out({"status": "aborted", "reason": exc.reason})
-        return 128 + (exc.signum or signal.SIGINT)
-    return _finish_run(args, outcome)
+            control.closing = True
+            if control.abort_requested and outcome.result.status != "aborted":
+                outcome.session.append_event({"type": "stop", "status": "aborted", "reason": control.abort_reason,
+                                              "lights_off": outcome.result.lights_off})
+                raise Aborted(control.abort_reason or "aborted", control.abort_signum)
+        except Aborted as exc:
+            control.closing = True
+            print(f"rig {args.command}: aborted ({exc.reason}); the sphere was switched off; continue with "
+                  "`rig resume SESSION`", file=sys.stderr)
+            if args.json:
+                _json_out({"status": "aborted", "reason": exc.reason})
+            return 128 + (exc.signum or signal.SIGINT)
+        return _finish_run(args, outcome)
 
 
 def _cmd_capture(args: argparse.Namespace) -> int:
@@ -189,7 +226,7 @@ def _cmd_capture(args: argparse.Namespace) -> int:
         world = make_world(cfg, load_settings(cfg))
     return _run_guarded(args, lambda control: capture(
         cfg, req, sessions_dir=args.sessions, name=args.name, control=control,
-        progress_factory=_progress_factory(args), say=None if args.json else _say(args),
+        progress_factory=_progress_factory(args), say=_say(args),
         calibration=args.calibration, sim_world=world))
 
 
@@ -197,13 +234,13 @@ def _cmd_resume(args: argparse.Namespace) -> int:
     from .capture import resume
     return _run_guarded(args, lambda control: resume(
         args.session, simulate=args.sim, control=control, progress_factory=_progress_factory(args),
-        say=None if args.json else _say(args)))
+        say=_say(args), accept_faults=args.accept_fault))
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
     from .report import write_report
     out = write_report(args.session, out_dir=args.out, fmt=args.format, run_estimators=not args.no_estimate,
-                       log=None if args.json else _say(args))
+                       log=_say(args))
     if args.json:
         _json_out(out)
     else:
@@ -251,29 +288,81 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
         return run_folder(args)
     from .estimate import estimate_session
     from .session import _json_default
-    out = estimate_session(args.session, calibration=args.calibration,
-                           log=None if args.json else (lambda m: print(m, file=sys.stderr)))
+    out = estimate_session(args.session, calibration=args.calibration, log=_say(args))
     if args.json:
         print(json.dumps(out, indent=2, default=_json_default))
     else:
-        for row in out.get("rows", []):
-            print("  ".join(f"{k}={v}" for k, v in row.items()))
+        from .estimate import format_rows
+        print(format_rows(out))
     return 0
 
 
 def _cmd_config(args: argparse.Namespace) -> int:
+    if args.schema:
+        from .config_check import json_schema
+        print(json.dumps(json_schema(), indent=2))
+        return 0
     if args.check:
-        cfg = load_config(args.check)
-        print(f"{args.check}: valid rig config '{cfg.name}'")
+        from .config_check import check_config
+        out = check_config(args.check)
+        if args.json:
+            _json_out(out)
+        else:
+            b = out["budget"]
+            print(f"{args.check}: valid rig config '{out['rig']}' (schema, [calibration], poses, exposures; the plan "
+                  f"of every estimator: {b['frames']} frames, peak {b['max_current_a']:.2f} A of "
+                  f"{b['max_total_current_a']:g} A, {b['peak_temperature_c']:.1f} C of {b['over_temperature_c']:g} C)")
+    elif args.json:
+        _json_out({"ok": True, "file": "<package>/rig/data/default_rig.toml", "text": default_config_text()})
     else:
         print(default_config_text(), end="")
     return 0
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse that raises :class:`UsageError` instead of exiting, so ``--json`` can report it as JSON."""
+
+    def error(self, message: str):  # type: ignore[override]
+        raise UsageError(f"{self.prog}: {message}", self.format_usage())
+
+
+class UsageError(SystemExit):
+    """Bad command-line arguments (exit code 2, as argparse's own)."""
+
+    def __init__(self, message: str, usage: str) -> None:
+        super().__init__(2)
+        self.message, self.usage = message, usage
+
+    def __str__(self) -> str:
+        return self.message
+
+
+def _common() -> argparse.ArgumentParser:
+    """-v / --log-level / --quiet, accepted before or after the command (``rig -v demo``, ``rig demo -v``)."""
+    p = argparse.ArgumentParser(add_help=False)
+    p.add_argument("-v", "--verbose", action="count", default=argparse.SUPPRESS,
+                   help="log more on stderr: -v info, -vv debug (the drivers' byte traces, pymodbus, geocompy)")
+    p.add_argument("--log-level", default=argparse.SUPPRESS, metavar="LEVEL",
+                   choices=["DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL", "debug", "info", "warning", "error",
+                            "critical"], help="log level of every logger (overrides -v)")
+    p.add_argument("-q", "--quiet", action="store_true", default=argparse.SUPPRESS,
+                   help="no progress messages on stderr")
+    return p
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
-        prog="rig", description="sssrig: light-stage acquisition and subsurface-scattering estimation")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    from . import __version__
+    common = _common()
+    parser = _Parser(prog="rig", parents=[common],
+                     description="sssrig: light-stage acquisition and subsurface-scattering estimation")
+    parser.add_argument("--version", action="version", version=f"rig (sssrig) {__version__}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_Parser)
+    _orig_add = sub.add_parser
+
+    def add_parser(name: str, **kw):
+        kw.setdefault("parents", [common])
+        return _orig_add(name, **kw)
+    sub.add_parser = add_parser  # type: ignore[method-assign]
 
     p = sub.add_parser("demo", help="simulated capture session + estimates vs truth")
     _add_config(p)
@@ -288,6 +377,11 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", choices=["sphere", "sphere-modbus", "trigger", "total-station"], default=None,
                    help="start only this device's simulator, on --url")
     p.add_argument("--url", default=None, help="with --device: 'pty' (default) or tcp://HOST:PORT")
+    p.add_argument("--fault", action="append", metavar="DEVICE:FAULT[=VALUE]",
+                   help="inject a fault to rehearse it (repeatable), e.g. sphere:led_fault, sphere:busy=3, "
+                        "sphere:over_temperature, trigger:busy, total_station:corrupt=0.003, any:latency=0.2, "
+                        "any:mute; `rig sim --fault list` lists them")
+    p.add_argument("--json", action="store_true", help="print the URLs (and faults) as JSON")
     p.set_defaults(func=_cmd_sim)
 
     p = sub.add_parser("plan", help="print a capture plan with its budget (dry run, no devices)")
@@ -317,6 +411,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("session", type=Path, help="session folder")
     p.add_argument("--sim", action="store_true", help="simulate every device")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--accept-fault", action="append", default=[], choices=["led_fault"],
+                   help="continue although the sphere still reports this fault (after checking the LEDs)")
     p.add_argument("--json", action="store_true", help="print the outcome as JSON")
     p.set_defaults(func=_cmd_resume)
 
@@ -394,22 +490,81 @@ def build_parser() -> argparse.ArgumentParser:
     from .calibration.cli import add_parser as add_calibrate
     add_calibrate(sub)
 
-    p = sub.add_parser("config", help="print the default config or --check a file")
-    p.add_argument("--check", type=Path, default=None, help="validate this config file")
+    p = sub.add_parser("config", help="print the default config, --check a file, or print the --schema")
+    p.add_argument("--check", type=Path, default=None, metavar="FILE",
+                   help="validate this config file: schema, [calibration], poses, exposures, the plan's budgets")
+    p.add_argument("--schema", action="store_true", help="print the JSON Schema of rig config files (for editors)")
+    p.add_argument("--json", action="store_true", help="with --check: print the resolved config as JSON")
     p.set_defaults(func=_cmd_config)
     return parser
 
 
+# commands that can take more than 2 s: they report stages on stderr from the start
+_LONG = {"demo": "simulated session and estimates", "capture": "capture", "resume": "resume",
+         "report": "report", "devices": "device check", "estimate": "estimate", "calibrate": "calibration"}
+
+
+def _error_json(exc: BaseException, kind: str) -> dict:
+    err = {"type": kind, "message": str(exc)}
+    for key in ("file", "field", "expected"):
+        if getattr(exc, key, None) is not None:
+            err[key] = str(getattr(exc, key))
+    return {"ok": False, "error": err}
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    """Run ``rig``. Exit codes: 0 ok, 1 a device check failed / internal error, 2 bad input (config, file,
+    arguments), 3 paused (resumable), 128 + signal on abort. Errors are one line on stderr, or a JSON object
+    on stdout with ``--json``; tracebacks only with ``-vv``."""
+    import logging
+
+    import os
+    if os.name != "posix":  # pragma: no cover - exercised only off POSIX
+        from . import POSIX_ONLY
+        print(f"rig: error: {POSIX_ONLY}", file=sys.stderr)
+        return 2
+    argv = list(sys.argv[1:] if argv is None else argv)
+    want_json = "--json" in argv
+    try:
+        args = build_parser().parse_args(argv)
+    except UsageError as exc:
+        if want_json:
+            _json_out(_error_json(exc, "usage"))
+        else:
+            print(exc.usage + exc.message, file=sys.stderr)
+        return 2
+    from .feedback import Feedback, setup_logging
+    setup_logging(getattr(args, "verbose", 0), getattr(args, "log_level", None))
+    quiet = getattr(args, "quiet", False)
+    args.quiet = quiet
+    args.feedback = Feedback(f"rig {args.command}", enabled=not quiet and args.command in _LONG)
+    if args.command in _LONG:
+        args.feedback.stage(f"rig {args.command}: {_LONG[args.command]} ...")
     try:
         return int(args.func(args) or 0)
     except RigError as exc:
+        if getattr(args, "json", False):
+            _json_out(_error_json(exc, type(exc).__name__))
         print(f"rig {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except SystemExit as exc:
+        if isinstance(exc.code, str):
+            if getattr(args, "json", False):
+                _json_out(_error_json(exc, "usage"))
+            print(exc.code, file=sys.stderr)
+            return 2
+        raise
     except KeyboardInterrupt:
         print(f"rig {args.command}: interrupted", file=sys.stderr)
         return 130
+    except (OSError, ValueError) as exc:      # a bad path or value the checks above did not name
+        logging.getLogger("rig").debug("rig %s failed", args.command, exc_info=True)
+        if getattr(args, "json", False):
+            _json_out(_error_json(exc, type(exc).__name__))
+        print(f"rig {args.command}: error: {type(exc).__name__}: {exc} (-vv shows where)", file=sys.stderr)
+        return 2
+    finally:
+        args.feedback.close()
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1,10 +1,14 @@
 """Rig configuration: TOML -> frozen dataclasses, validated on load.
 
-Every error names the file, the field and what was expected (``drivers.errors.ConfigError``). The
+The keys, types, ranges and enumerations are the pydantic schema of :mod:`rig.schema` (unknown keys refused with
+a "did you mean"); the checks across keys (degenerate camera pose, exposures inside the trigger's range,
+driver-specific rules, targets) are here; ``[calibration]`` is checked by :mod:`rig.calibration.settings`.
+Every error names the file, the field, what was expected and the value (``drivers.errors.ConfigError``). The
 default simulated rig ships in ``rig/data/default_rig.toml`` so that ``rig demo`` needs no user files.
 """
 from __future__ import annotations
 
+import math
 import tomllib
 from dataclasses import asdict, dataclass, field
 from importlib import resources
@@ -12,6 +16,8 @@ from pathlib import Path
 from typing import Any
 
 from drivers.errors import ConfigError
+
+from . import schema
 
 DEFAULT_RIG = "default_rig.toml"
 
@@ -113,6 +119,8 @@ class StationConfig:
     station_xyz_mm: Vec3
     station_yaw_deg: float
     noise_mm: float
+    crc: bool = True                  # GeoCOM CRC-16 on every request and reply
+    max_survey_error_mm: float = 50.0  # a survey farther than this from the target's expected position is refused
 
 
 @dataclass(frozen=True)
@@ -158,6 +166,18 @@ class EstimationConfig:
 
 
 @dataclass(frozen=True)
+class RunnerConfig:
+    """[runner]: what the runner does about faults (docs/capture-and-resume.md)."""
+
+    retries: int = 2                  # extra attempts of a step after a timeout or a garbled reply
+    busy_timeout_s: float = 10.0      # a device answering BUSY is asked again, with backoff, for this long
+    on_led_fault: str = "pause"       # the sphere's LED-fault bit: "pause" | "abort" | "continue"
+    on_over_temperature: str = "hold"  # its over-temperature bit: "hold" (dark until cool) | "pause" | "abort"
+    lost_timeout_s: float = 120.0     # a lost device may take this long to come back
+    max_hold_s: float = 1800.0        # longest over-temperature hold
+
+
+@dataclass(frozen=True)
 class RigConfig:
     name: str
     sphere: SphereConfig
@@ -168,6 +188,7 @@ class RigConfig:
     object: ObjectConfig
     scene: SceneConfig
     estimation: EstimationConfig
+    runner: RunnerConfig = field(default_factory=RunnerConfig)
     source: str = field(default="<memory>", compare=False)
 
     def to_dict(self) -> dict[str, Any]:
@@ -177,7 +198,7 @@ class RigConfig:
 
 
 class _Reader:
-    """Typed field access with errors that name the file and the dotted field."""
+    """Typed field access with errors that name the file and the dotted field (``rig.scene_file`` reads with it)."""
 
     def __init__(self, file: str, data: dict[str, Any], prefix: str = "") -> None:
         self.file, self.data, self.prefix = file, data, prefix
@@ -254,170 +275,112 @@ class _Reader:
 _REQUIRED = object()
 
 # [trigger] keys each driver reads; a key of another driver (or a typo) is an error, not silently ignored
-_TRIGGER_COMMON = ("driver", "url", "timeout_s", "min_exposure_s", "max_exposure_s")
 TRIGGER_KEYS: dict[str, tuple[str, ...]] = {
-    "esper": _TRIGGER_COMMON + ("outputs_mask",),
-    "hid": _TRIGGER_COMMON + ("outputs_mask", "vendor_id", "product_id", "serial", "path"),
-    "serial-release": ("driver", "url", "min_exposure_s", "max_exposure_s", "focus_lead_s"),
+    "esper": tuple(schema.EsperTrigger.model_fields),
+    "hid": tuple(schema.HidTrigger.model_fields),
+    "serial-release": tuple(schema.SerialReleaseTrigger.model_fields),
 }
-_GPHOTO2_ONLY = ("port", "model", "capture_mode", "delete_after_download")
+_GPHOTO2_ONLY = tuple(k for k in schema.Gphoto2Camera.model_fields if k not in schema.FolderCamera.model_fields)
 
 
-def _parse_trigger(t: _Reader) -> TriggerConfig:
-    """[trigger]: the driver's own keys, validated; see :class:`TriggerConfig`."""
-    driver = t.str("driver", choices=TRIGGER_DRIVERS)
-    allowed = TRIGGER_KEYS[driver]
-    for key in t.data:
-        if key not in allowed:
-            raise ConfigError(t.file, t._name(key), f"a key of [trigger] for driver {driver!r} ("
-                              + ", ".join(allowed) + ")", key)
-    min_s = t.num("min_exposure_s", 0.001, positive=True, hi=3600.0)
-    max_s = t.num("max_exposure_s", 60.0, positive=True, hi=3600.0)
-    if max_s < min_s:
-        raise ConfigError(t.file, t._name("max_exposure_s"), f"a number >= {t.prefix}min_exposure_s ({min_s:g})",
-                          max_s)
-    common: dict[str, Any] = {"driver": driver, "min_exposure_s": min_s, "max_exposure_s": max_s}
-    if driver == "serial-release":
-        return TriggerConfig(url=t.str("url"), focus_lead_s=t.num("focus_lead_s", 0.1, lo=0.0, hi=10.0),
-                             **common)
-    common["timeout_s"] = t.num("timeout_s", 1.0, positive=True, hi=60.0)
-    common["outputs_mask"] = t.int("outputs_mask", 0x3F, lo=1, hi=0x3F)
-    if driver == "esper":
-        return TriggerConfig(url=t.str("url"), **common)
-    url = t.str("url", "")
-    if url not in ("", "sim"):
-        raise ConfigError(t.file, t._name("url"), '"sim" or no url (a HID box is found by vendor_id and '
-                          "product_id, or by path)", url)
-    path = t.str("path", "")
-    vendor_id = t.int("vendor_id", 0, lo=0, hi=0xFFFF)
-    product_id = t.int("product_id", 0, lo=0, hi=0xFFFF)
-    if url != "sim" and not path:
-        for key, value in (("vendor_id", vendor_id), ("product_id", product_id)):
-            if not value:
-                raise ConfigError(t.file, t._name(key), f"the box's USB {key.replace('_', ' ')}, 1..0xffff "
-                                  f"(or {t.prefix}path, or url = \"sim\")", t.data.get(key))
-    return TriggerConfig(url=url, vendor_id=vendor_id, product_id=product_id, serial=t.str("serial", ""),
-                         path=path, **common)
+def _vec(v: Any) -> Vec3:
+    return (float(v[0]), float(v[1]), float(v[2]))
 
 
-def _camera_driver_fields(c: _Reader) -> dict[str, Any]:
-    """[camera] keys that depend on the driver (the rest of [camera] describes the simulated sensor)."""
-    driver = c.str("driver", choices=CAMERA_DRIVERS)
-    if driver == "folder":
-        for key in _GPHOTO2_ONLY:
-            if key in c.data:
-                raise ConfigError(c.file, c._name(key), 'no such key with driver "folder" (it is used by '
-                                  'driver "gphoto2")', c.data[key])
-        return {"pattern": c.str("pattern", "*.dng")}
-    if c.str("folder") == "sim":
-        raise ConfigError(c.file, c._name("folder"), 'the folder gphoto2 downloads frames into ("sim" needs '
-                          'driver "folder")', "sim")
-    port = c.str("port", "")
-    if port == "sim":
-        raise ConfigError(c.file, c._name("port"), 'a gphoto2 port ("usb:BUS,DEV", "ptpip:HOST", '
-                          '"disk:/path") or "" for the first camera found; there is no simulated gphoto2 camera',
-                          port)
-    return {"pattern": c.str("pattern", "*"), "port": port, "model": c.str("model", ""),
-            "capture_mode": c.str("capture_mode", "external", choices=GPHOTO2_CAPTURE_MODES),
-            "delete_after_download": c.bool("delete_after_download", False)}
+def _trigger(file: str, t: Any) -> TriggerConfig:
+    """[trigger]: the driver's own keys (schema), plus the rules across keys."""
+    if t.max_exposure_s < t.min_exposure_s:
+        raise ConfigError(file, "trigger.max_exposure_s", f"a number >= trigger.min_exposure_s ({t.min_exposure_s:g})",
+                          t.max_exposure_s)
+    if t.driver == "hid":
+        if t.url not in ("", "sim"):
+            raise ConfigError(file, "trigger.url", '"sim" or no url (a HID box is found by vendor_id and '
+                              "product_id, or by path)", t.url)
+        if t.url != "sim" and not t.path:
+            for key in ("vendor_id", "product_id"):
+                if not getattr(t, key):
+                    raise ConfigError(file, f"trigger.{key}", f"the box's USB {key.replace('_', ' ')}, 1..0xffff "
+                                      "(or trigger.path, or url = \"sim\")", getattr(t, key))
+    return TriggerConfig(**t.model_dump())
+
+
+def _camera(file: str, c: Any) -> CameraConfig:
+    d = c.model_dump()
+    if d["key_exposure_s"] is None:
+        d["key_exposure_s"] = d["exposure_s"]
+    d["position_mm"], d["look_at_mm"], d["up"] = _vec(d["position_mm"]), _vec(d["look_at_mm"]), _vec(d["up"])
+    if c.driver == "gphoto2":
+        if c.folder == "sim":
+            raise ConfigError(file, "camera.folder", 'the folder gphoto2 downloads frames into ("sim" needs '
+                              'driver "folder")', "sim")
+        if c.port == "sim":
+            raise ConfigError(file, "camera.port", 'a gphoto2 port ("usb:BUS,DEV", "ptpip:HOST", "disk:/path") or '
+                              '"" for the first camera found; there is no simulated gphoto2 camera', c.port)
+    cam = CameraConfig(**d)
+    if cam.white_level_dn <= cam.black_level_dn:
+        raise ConfigError(file, "camera.white_level_dn", "a value above camera.black_level_dn", cam.white_level_dn)
+    view = [a - b for a, b in zip(cam.look_at_mm, cam.position_mm)]
+    norm = math.sqrt(sum(x * x for x in view))
+    if norm < 1e-6:
+        raise ConfigError(file, "camera.look_at_mm", f"a point away from camera.position_mm {list(cam.position_mm)} "
+                          "(the camera looks from position_mm towards look_at_mm)", list(cam.look_at_mm))
+    up = cam.up
+    cross = (view[1] * up[2] - view[2] * up[1], view[2] * up[0] - view[0] * up[2], view[0] * up[1] - view[1] * up[0])
+    up_norm = math.sqrt(sum(x * x for x in up))
+    if up_norm == 0 or math.sqrt(sum(x * x for x in cross)) < 1e-6 * norm * up_norm:
+        raise ConfigError(file, "camera.up", "a direction not parallel to the view direction look_at_mm - "
+                          f"position_mm = {[round(x, 6) for x in view]}", list(up))
+    return cam
+
+
+def _check_exposures(file: str, camera: CameraConfig, trigger: TriggerConfig) -> None:
+    """Every exposure the plan fires must be inside the trigger's range, and not round to 0 ms."""
+    for key in ("exposure_s", "key_exposure_s"):
+        v = getattr(camera, key)
+        if not trigger.min_exposure_s <= v <= trigger.max_exposure_s:
+            raise ConfigError(file, f"camera.{key}", f"an exposure inside the trigger's range trigger.min_exposure_s"
+                              f"..trigger.max_exposure_s = {trigger.min_exposure_s:g}..{trigger.max_exposure_s:g} s", v)
+        if round(v * 1000.0) < 1:
+            raise ConfigError(file, f"camera.{key}", "an exposure of at least 1 ms (the triggers time whole "
+                              "milliseconds)", v)
 
 
 def parse_config(data: dict[str, Any], file: str = "<memory>") -> RigConfig:
-    """Validate a parsed TOML document; raise :class:`ConfigError` naming the first bad field."""
-    top = _Reader(file, data)
-    s = top.section("sphere")
-    sphere = SphereConfig(
-        driver=s.str("driver", choices=SPHERE_DRIVERS), url=s.str("url"),
-        radius_mm=s.num("radius_mm", positive=True),
-        geodesic_frequency=s.int("geodesic_frequency", lo=1, hi=40),
-        min_elevation_deg=s.num("min_elevation_deg", -90.0, lo=-90.0, hi=90.0),
-        led_intensity=s.vec3("led_intensity", positive=True),
-        led_current_a_per_channel=s.num("led_current_a_per_channel", positive=True),
-        max_total_current_a=s.num("max_total_current_a", positive=True),
-        max_mean_duty=s.num("max_mean_duty", lo=0.0, hi=1.0, positive=True),
-        slots=s.int("slots", 16, lo=1, hi=255), watchdog_s=s.num("watchdog_s", 5.0, lo=0.0, hi=60.0),
-        settle_s=s.num("settle_s", 0.0, lo=0.0, hi=10.0),
-        pattern_peak=s.num("pattern_peak", 1.0, lo=0.0, hi=1.0, positive=True),
-        led_forward_voltage_v=s.num("led_forward_voltage_v", 3.0, positive=True),
-        ambient_c=s.num("ambient_c", 25.0, lo=-40.0, hi=80.0),
-        thermal_c_per_a=s.num("thermal_c_per_a", 2.5, lo=0.0),
-        thermal_tau_s=s.num("thermal_tau_s", 30.0, positive=True),
-        over_temperature_c=s.num("over_temperature_c", 70.0, lo=0.0, hi=200.0))
-    trigger = _parse_trigger(top.section("trigger"))
-    c = top.section("camera")
-    camera = CameraConfig(
-        driver=c.str("driver", choices=CAMERA_DRIVERS), folder=c.str("folder"),
-        width_px=c.int("width_px", lo=8, hi=20000), height_px=c.int("height_px", lo=8, hi=20000),
-        fx_px=c.num("fx_px", positive=True), position_mm=c.vec3("position_mm"),
-        look_at_mm=c.vec3("look_at_mm"), up=c.vec3("up", (0.0, 0.0, 1.0)),
-        exposure_s=c.num("exposure_s", lo=1e-6, hi=60.0),
-        key_exposure_s=c.num("key_exposure_s", c.data.get("exposure_s", 0.0), lo=1e-6, hi=60.0),
-        gain_dn_per_unit=c.num("gain_dn_per_unit", positive=True),
-        black_level_dn=c.int("black_level_dn", lo=0, hi=65535),
-        white_level_dn=c.int("white_level_dn", lo=1, hi=65535),
-        read_noise_dn=c.num("read_noise_dn", 0.0, lo=0.0),
-        electrons_per_dn=c.num("electrons_per_dn", 1.0, positive=True),
-        fetch_timeout_s=c.num("fetch_timeout_s", 30.0, positive=True), **_camera_driver_fields(c))
-    if camera.white_level_dn <= camera.black_level_dn:
-        raise ConfigError(file, "camera.white_level_dn", "a value above camera.black_level_dn",
-                          camera.white_level_dn)
-    g = top.section("total_station")
-    station = StationConfig(
-        driver=g.str("driver", choices=STATION_DRIVERS), url=g.str("url"),
-        station_xyz_mm=g.vec3("station_xyz_mm"), station_yaw_deg=g.num("station_yaw_deg", 0.0),
-        noise_mm=g.num("noise_mm", 0.0, lo=0.0))
-    raw_targets = data.get("targets", [])
-    if not isinstance(raw_targets, list):
-        raise ConfigError(file, "targets", "an array of tables [[targets]]", type(raw_targets).__name__)
-    targets = []
-    for i, item in enumerate(raw_targets):
-        if not isinstance(item, dict):
-            raise ConfigError(file, f"targets[{i}]", "a table with name and xyz_mm", item)
-        r = _Reader(file, item, f"targets[{i}].")
-        targets.append(Target(r.str("name"), r.vec3("xyz_mm")))
+    """Validate a parsed TOML document (:mod:`rig.schema` plus the checks across fields); raise
+    :class:`ConfigError` naming the first bad field. ``[calibration]`` is checked by :func:`load_config`."""
+    m = schema.validate(data, file)
+    s = m.sphere.model_dump()
+    s["led_intensity"] = _vec(s["led_intensity"])
+    sphere = SphereConfig(**s)
+    trigger = _trigger(file, m.trigger)
+    camera = _camera(file, m.camera)
+    _check_exposures(file, camera, trigger)
+    station = StationConfig(**{**m.total_station.model_dump(), "station_xyz_mm": _vec(m.total_station.station_xyz_mm)})
+    targets = tuple(Target(t.name, _vec(t.xyz_mm)) for t in m.targets)
     names = [tg.name for tg in targets]
     if len(set(names)) != len(names):
         raise ConfigError(file, "targets", "unique target names", names)
-    ob = top.section("object")
-    shape = ob.str("shape", choices=("sphere", "mesh"))
-    if shape == "mesh":     # a mesh in rig coordinates (e.g. a registered scan): nothing to survey
-        obj = ObjectConfig(shape=shape, radius_mm=ob.num("radius_mm", 0.0, lo=0.0),
-                           survey_target=ob.str("survey_target", ""),
-                           target_offset_mm=ob.vec3("target_offset_mm", (0.0, 0.0, 0.0)),
-                           mesh_path=ob.str("mesh_path"),
-                           mesh_units_mm=ob.num("mesh_units_mm", 1.0, positive=True))
-    else:
-        obj = ObjectConfig(shape=shape, radius_mm=ob.num("radius_mm", positive=True),
-                           survey_target=ob.str("survey_target"),
-                           target_offset_mm=ob.vec3("target_offset_mm", (0.0, 0.0, 0.0)))
+    o = m.object.model_dump()
+    o["target_offset_mm"] = _vec(o["target_offset_mm"])
+    obj = ObjectConfig(**o)
     if obj.survey_target and obj.survey_target not in names:
-        raise ConfigError(file, "object.survey_target", "the name of a [[targets]] entry ("
-                          + ", ".join(names) + ")", obj.survey_target)
-    sc = top.section("scene")
-    material = sc.str("material", "custom")
-    if material != "custom" and material not in MATERIALS:
-        raise ConfigError(file, "scene.material", "one of custom, " + ", ".join(MATERIALS), material)
-    default_s, default_a = MATERIALS.get(material, (None, None))
-    scene = SceneConfig(
-        shape=sc.str("shape", choices=("sphere",)), radius_mm=sc.num("radius_mm", positive=True),
-        center_mm=sc.vec3("center_mm", (0.0, 0.0, 0.0)), material=material,
-        sigma_s_prime_per_mm=sc.vec3("sigma_s_prime_per_mm", default_s, positive=True),
-        sigma_a_per_mm=sc.vec3("sigma_a_per_mm", default_a, nonneg=True),
-        eta=sc.num("eta", 1.3, lo=1.0, hi=3.0), tessellation=sc.int("tessellation", 4, lo=1, hi=7),
-        seed=sc.int("seed", 0, lo=0), render=sc.str("render", "fast", choices=("fast", "mc")),
-        mc_spp=sc.int("mc_spp", 64, lo=2, hi=1_000_000))
-    e = top.section("estimation")
-    estimation = EstimationConfig(
-        key_light_direction=e.vec3("key_light_direction"),
-        single_image_method=e.str("single_image_method", "direct"),
-        single_image_subdivisions=e.int("single_image_subdivisions", 3, lo=1, hi=6),
-        eta=e.num("eta", 1.3, lo=1.0, hi=3.0),
-        complements=e.bool("complements", False),
-        single_image_model=e.str("single_image_model", "dipole-jensen",
-                                 choices=("mc-table", "dipole-better", "dipole-jensen")),
-        compare_models=e.bool("compare_models", True))
-    name = top.section("rig").str("name")
-    return RigConfig(name, sphere, trigger, camera, station, tuple(targets), obj, scene, estimation, file)
+        raise ConfigError(file, "object.survey_target", "the name of a [[targets]] entry (" + ", ".join(names) + ")"
+                          + schema.did_you_mean(obj.survey_target, names), obj.survey_target)
+    sc = m.scene.model_dump()
+    default_s, default_a = MATERIALS.get(sc["material"], (None, None))
+    for key, default in (("sigma_s_prime_per_mm", default_s), ("sigma_a_per_mm", default_a)):
+        if sc[key] is None and default is None:
+            raise ConfigError(file, f"scene.{key}", 'a value (field is missing; material = "custom")')
+        sc[key] = _vec(sc[key] if sc[key] is not None else default)
+    sc["center_mm"] = _vec(sc["center_mm"])
+    scene = SceneConfig(**sc)
+    e = m.estimation.model_dump()
+    e["key_light_direction"] = _vec(e["key_light_direction"])
+    if not any(e["key_light_direction"]):
+        raise ConfigError(file, "estimation.key_light_direction", "a non-zero direction", [0.0, 0.0, 0.0])
+    estimation = EstimationConfig(**e)
+    runner = RunnerConfig(**m.runner.model_dump())
+    return RigConfig(m.rig.name, sphere, trigger, camera, station, targets, obj, scene, estimation, runner, file)
 
 
 def load_config(path: str | Path | None = None) -> RigConfig:
@@ -436,7 +399,11 @@ def load_config(path: str | Path | None = None) -> RigConfig:
         data = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(file, "<syntax>", "valid TOML", str(exc)) from exc
-    return parse_config(data, file)
+    cfg = parse_config(data, file)
+    from .calibration.settings import load_settings   # [calibration]: its keys, types and checks
+
+    load_settings(cfg, data.get("calibration", {}))
+    return cfg
 
 
 def default_config_text() -> str:

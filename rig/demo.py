@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from .config import load_config
-from .estimate import estimate_session
+from .estimate import estimate_session, format_rows
 from .factory import open_devices, start_simulators
 from .geometry import geometry_to_dict, rig_geometry
 from .plan import CaptureRequest, build_plan
@@ -72,36 +72,8 @@ def run_demo(*, config_path: str | Path | None = None, sessions_dir: str | Path 
 
 
 def format_table(result: dict[str, Any]) -> str:
-    rows = result["rows"]
-    head = f"{'quantity':<34} {'truth':>10} {'estimate':>10} {'error':>9} {'seconds':>8}"
-    lines = [head, "-" * len(head)]
-    for r in rows:
-        truth = "-" if r["truth"] is None else f"{r['truth']:.4g}"
-        est = "unknown" if r["estimate"] is None else f"{r['estimate']:.4g}"
-        err = "-" if r["error"] is None else f"{100 * r['error']:+.1f}%"
-        lines.append(f"{r['quantity']:<34} {truth:>10} {est:>10} {err:>9} {r['seconds']:>8.2f}")
-    lines.append("")
-    model_rows = result.get("model_rows") or []
-    if model_rows:
-        names = list(model_rows[0]["models"])
-        lines.append("single-image, every profile model (estimate, error vs truth):")
-        head2 = f"{'quantity':<20} {'truth':>9} " + " ".join(f"{n:>22}" for n in names)
-        lines += [head2, "-" * len(head2)]
-        for r in model_rows:
-            truth = "-" if r["truth"] is None else f"{r['truth']:.4g}"
-            cells = []
-            for n in names:
-                m = r["models"][n]
-                if m["estimate"] is None:
-                    cells.append(f"{'failed':>22}")
-                else:
-                    err = "" if m["error"] is None else f" ({100 * m['error']:+.1f}%)"
-                    cells.append(f"{m['estimate']:.4g}{err}".rjust(22))
-            lines.append(f"{r['quantity']:<20} {truth:>9} " + " ".join(cells))
-        lines.append("")
+    lines = [format_rows(result)]
     for label, sec in result["timings_s"].items():
         lines.append(f"{label:<34} {sec:>8.2f} s")
-    for note in result.get("notes", []):
-        lines.append(f"note: {note}")
     lines.append(f"session: {result['session']}")
     return "\n".join(lines)

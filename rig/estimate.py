@@ -648,12 +648,14 @@ def estimate_session(root: str | Path, *, calibration: str | os.PathLike[str] | 
     rows: list[dict[str, Any]] = []
     notes: list[str] = []
     if frames.has("x"):
+        say("gradients estimate: maps and diffusion ...")
         est = run_gradients(frames, manifest, surveys)
         session.write_estimate("gradients", est)
         say(f"gradients estimate: {est['seconds']:.2f} s")
         results["gradients"] = est
         rows += _rows("gradients", est, truth)
     if frames.has("key"):
+        say("single-image estimate: fitting every profile model ...")
         est = run_single_image(frames, manifest, surveys)
         session.write_estimate("single-image", est)
         say(f"single-image estimate: {est['seconds']:.2f} s")
@@ -679,3 +681,37 @@ def estimate_session(root: str | Path, *, calibration: str | os.PathLike[str] | 
     if frames.has("key") and model_rows:
         out["model_rows"] = model_rows
     return out
+
+
+def format_rows(result: dict[str, Any]) -> str:
+    """The table of :func:`estimate_session`'s rows (quantity, truth, estimate, error, seconds; 4 significant
+    digits), the single-image model comparison and the notes."""
+    head = f"{'quantity':<34} {'truth':>10} {'estimate':>10} {'error':>9} {'seconds':>8}"
+    lines = [head, "-" * len(head)]
+    for r in result.get("rows", []):
+        truth = "-" if r["truth"] is None else f"{r['truth']:.4g}"
+        est = "unknown" if r["estimate"] is None else f"{r['estimate']:.4g}"
+        err = "-" if r["error"] is None else f"{100 * r['error']:+.1f}%"
+        lines.append(f"{r['quantity']:<34} {truth:>10} {est:>10} {err:>9} {r['seconds']:>8.2f}")
+    lines.append("")
+    model_rows = result.get("model_rows") or []
+    if model_rows:
+        names = list(model_rows[0]["models"])
+        lines.append("single-image, every profile model (estimate, error vs truth):")
+        head2 = f"{'quantity':<20} {'truth':>9} " + " ".join(f"{n:>22}" for n in names)
+        lines += [head2, "-" * len(head2)]
+        for r in model_rows:
+            truth = "-" if r["truth"] is None else f"{r['truth']:.4g}"
+            cells = []
+            for n in names:
+                m = r["models"][n]
+                if m["estimate"] is None:
+                    cells.append(f"{'failed':>22}")
+                else:
+                    err = "" if m["error"] is None else f" ({100 * m['error']:+.1f}%)"
+                    cells.append(f"{m['estimate']:.4g}{err}".rjust(22))
+            lines.append(f"{r['quantity']:<20} {truth:>9} " + " ".join(cells))
+        lines.append("")
+    for note in result.get("notes", []):
+        lines.append(f"note: {note}")
+    return "\n".join(lines)

@@ -6,6 +6,7 @@ a serial-line release (``"serial-release"``) by a pyserial ``loop://`` port whos
 the simulated camera (``SimulatedReleaseCable``)."""
 from __future__ import annotations
 
+import logging
 import tempfile
 import threading
 import time
@@ -28,8 +29,8 @@ from .config import CameraConfig, RigConfig, TriggerConfig
 from .geometry import RigGeometry, rig_geometry
 from .runner import Devices
 
-__all__ = ["SimulatedRig", "SimulatedReleaseCable", "open_camera", "open_devices", "open_trigger",
-           "rig_geometry", "start_simulators"]  # rig_geometry: re-exported for hil/ and the CLI
+__all__ = ["ROLES", "SimulatedRig", "SimulatedReleaseCable", "open_camera", "open_device", "open_devices", "open_trigger",
+           "rig_geometry", "skip_exposure_waits", "start_simulators"]  # rig_geometry: re-exported for hil/ and the CLI
 
 
 class _Stopper:
@@ -38,6 +39,14 @@ class _Stopper:
 
     def close(self) -> None:
         self.obj.stop()
+
+
+class _Cleanup:
+    def __init__(self, tmp: tempfile.TemporaryDirectory) -> None:
+        self.tmp = tmp
+
+    def close(self) -> None:
+        self.tmp.cleanup()
 
 
 @dataclass
@@ -105,7 +114,8 @@ class SimulatedReleaseCable(protocol_loop.Serial):
 
 def start_simulators(config: RigConfig, geometry: RigGeometry, workdir: Path | None = None
                      ) -> SimulatedRig:
-    """Start every simulator the config asks for (URL ``sim``)."""
+    """Start every simulator the config asks for (URL ``sim``). The simulated camera drops its frames under
+    ``workdir`` (default: a temporary folder removed by :meth:`SimulatedRig.close`)."""
     from simulators.camera import SensorModel, SimulatedCamera
     from simulators.led_sphere import LedSphereModel, Ticker
     from simulators.scene import SphereObject
@@ -114,7 +124,8 @@ def start_simulators(config: RigConfig, geometry: RigGeometry, workdir: Path | N
     from simulators.trigger import EsperTriggerModel, FakeHidTriggerBox
 
     sc, cam = config.scene, config.camera
-    drop = Path(workdir or tempfile.mkdtemp(prefix="sssrig-simcam-")) / "drop"
+    own = None if workdir is not None else tempfile.TemporaryDirectory(prefix="sssrig-simcam-")
+    drop = Path(workdir if workdir is not None else own.name) / "drop"
     obj = SphereObject(sc.center_mm, sc.radius_mm, sc.sigma_s_prime_per_mm, sc.sigma_a_per_mm, sc.eta,
                        tessellation=sc.tessellation)
     sensor = SensorModel(cam.gain_dn_per_unit, cam.black_level_dn, cam.white_level_dn,
@@ -124,12 +135,17 @@ def start_simulators(config: RigConfig, geometry: RigGeometry, workdir: Path | N
     simcam = SimulatedCamera(obj, geometry.camera, geometry.led_positions_mm,
                              config.sphere.led_intensity, drop, sensor, seed=sc.seed, render_mode=sc.render,
                              mc=MCSettings(spp=sc.mc_spp, seed=sc.seed))
+    if sc.render == "mc":
+        from .feedback import numba_notice
+        numba_notice()
     renderer = ("the Jensen dipole (fast renderer)" if sc.render == "fast" else
                 f"Monte Carlo light transport ({sc.mc_spp} paths per pixel)")
     rig = SimulatedRig({}, drop, truth={
         "shape": sc.shape, "radius_mm": sc.radius_mm, "center_mm": list(sc.center_mm),
         "material": sc.material, "sigma_s_prime_per_mm": list(sc.sigma_s_prime_per_mm),
         "sigma_a_per_mm": list(sc.sigma_a_per_mm), "eta": sc.eta, "renderer": renderer})
+    if own is not None:
+        rig._closers.append(_Cleanup(own))    # the simulators' own folder goes with them (rig.close())
     rig._closers.append(simcam)
     rig.camera = simcam
     try:
@@ -168,7 +184,7 @@ def start_simulators(config: RigConfig, geometry: RigGeometry, workdir: Path | N
             gs = config.total_station
             model = GeoComModel(targets, station_xyz_mm=gs.station_xyz_mm,
                                 station_yaw_deg=gs.station_yaw_deg, noise_mm=gs.noise_mm,
-                                seed=sc.seed)
+                                seed=sc.seed, checksum=gs.crc)
             srv = serve(model, "tcp://127.0.0.1:0")
             rig._closers.append(srv)
             rig.urls["total_station"] = srv.url
@@ -179,6 +195,16 @@ def start_simulators(config: RigConfig, geometry: RigGeometry, workdir: Path | N
         rig.close()
         raise
     return rig
+
+
+def skip_exposure_waits(devices: Devices, sim: SimulatedRig | None) -> None:
+    """The simulated camera renders a frame at once: the trigger driver need not wait the exposure out, and
+    the simulated ESPER box is then not busy for it (it would answer the next ``S`` BUSY)."""
+    if hasattr(devices.trigger, "wait_for_exposure"):
+        devices.trigger.wait_for_exposure = False
+    server = sim.servers.get("trigger") if sim is not None else None
+    if server is not None and hasattr(server.device, "busy_during_exposure"):
+        server.device.busy_during_exposure = False
 
 
 def open_trigger(tc: TriggerConfig, sim: SimulatedRig | None = None) -> Trigger:
@@ -222,29 +248,39 @@ def open_camera(cc: CameraConfig, sim: SimulatedRig | None = None) -> Camera:
     return FolderCamera(urls.get("camera", cc.folder), pattern=cc.pattern)
 
 
+ROLES = ("sphere", "trigger", "camera", "total_station")
+
+
+def open_device(role: str, config: RigConfig, geometry: RigGeometry, sim: SimulatedRig | None = None) -> Any:
+    """Open one device's driver (``role`` one of :data:`ROLES`) on its configured URL or its simulator's."""
+    urls = sim.urls if sim else {}
+    if role == "sphere":
+        s = config.sphere
+        limits = dict(max_total_current_a=s.max_total_current_a, max_mean_duty=s.max_mean_duty,
+                      led_current_a_per_channel=s.led_current_a_per_channel)
+        if s.driver.startswith("modbus"):
+            from drivers.led_sphere_modbus import open_led_sphere_modbus
+            return open_led_sphere_modbus(urls.get("sphere", s.url), **limits)
+        return open_led_sphere_serial(urls.get("sphere", s.url), **limits)
+    if role == "trigger":
+        return open_trigger(config.trigger, sim)
+    if role == "camera":
+        return open_camera(config.camera, sim)
+    if role == "total_station":
+        ts = config.total_station
+        return open_total_station(urls.get("total_station", ts.url), station_xyz_mm=ts.station_xyz_mm,
+                                  station_yaw_deg=ts.station_yaw_deg, targets=geometry.targets, checksum=ts.crc,
+                                  max_error_mm=ts.max_survey_error_mm, logger=logging.getLogger("geocompy"))
+    raise ValueError(f"unknown device role {role!r}; expected one of {', '.join(ROLES)}")
+
+
 def open_devices(config: RigConfig, geometry: RigGeometry, sim: SimulatedRig | None = None
                  ) -> Devices:
     """Open every device's driver on its configured URL (or its simulator's)."""
-    urls = sim.urls if sim else {}
-    s = config.sphere
     opened: list[Any] = []
-    limits = dict(max_total_current_a=s.max_total_current_a, max_mean_duty=s.max_mean_duty,
-                  led_current_a_per_channel=s.led_current_a_per_channel)
     try:
-        if s.driver.startswith("modbus"):
-            from drivers.led_sphere_modbus import open_led_sphere_modbus
-            light = open_led_sphere_modbus(urls.get("sphere", s.url), **limits)
-        else:
-            light = open_led_sphere_serial(urls.get("sphere", s.url), **limits)
-        opened.append(light)
-        trigger = open_trigger(config.trigger, sim)
-        opened.append(trigger)
-        camera = open_camera(config.camera, sim)
-        opened.append(camera)
-        ts = config.total_station
-        feed = open_total_station(urls.get("total_station", ts.url), station_xyz_mm=ts.station_xyz_mm,
-                                  station_yaw_deg=ts.station_yaw_deg, targets=geometry.targets)
-        opened.append(feed)
+        for role in ROLES:
+            opened.append(open_device(role, config, geometry, sim))
     except BaseException:
         for dev in opened:
             try:
@@ -252,4 +288,4 @@ def open_devices(config: RigConfig, geometry: RigGeometry, sim: SimulatedRig | N
             except Exception:
                 pass
         raise
-    return Devices(light, trigger, camera, feed)
+    return Devices(*opened)

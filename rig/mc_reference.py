@@ -70,6 +70,9 @@ class MonteCarloReference:
         log sigma_a) (K, C, 2) and its stderr, from the same paths (:func:`simulators.mc.render`)."""
         from simulators.mc import Medium, render
 
+        from .feedback import numba_notice
+        numba_notice()
+
         ssp = np.atleast_1d(np.asarray(sigma_s_prime_per_mm, dtype=np.float64))
         sa = np.atleast_1d(np.asarray(sigma_a_per_mm, dtype=np.float64))
         media = [Medium.from_reduced(float(s), float(a), g=self.g, eta=float(eta)) for s, a in zip(ssp, sa)]
@@ -157,6 +160,10 @@ class GradientsMonteCarloReference:
 
         from simulators.mc_capture import MCSettings
         from simulators.scene import SphereObject, render_gradient_capture
+
+        from .feedback import numba_notice
+        if self.render_mode == "mc":
+            numba_notice()
 
         ssp = np.broadcast_to(np.asarray(sigma_s_prime_per_mm, dtype=np.float64), (3,))
         sa = np.broadcast_to(np.asarray(sigma_a_per_mm, dtype=np.float64), (3,))

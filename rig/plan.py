@@ -351,17 +351,21 @@ def budget(steps: Sequence[Step], config: RigConfig) -> dict[str, Any]:
         t_eq = s.ambient_c + s.thermal_c_per_a * current
         temp = t_eq + (temp - t_eq) * math.exp(-dt / s.thermal_tau_s)
         peak_temp = max(peak_temp, temp)
-    problems = []
+    problems: list[str] = []
+    fields: list[str] = []          # the config field each problem is about (``rig config --check``)
     if max_current > s.max_total_current_a:
+        fields.append("sphere.max_total_current_a")
         problems.append(f"a pattern draws {max_current:.2f} A, over sphere.max_total_current_a="
                         f"{s.max_total_current_a:g} A")
     longest = max((st.nominal_s for st in steps if st.kind in ("trigger", "settle")), default=0.0)
     exposure_s = max((st.params["exposure_s"] for st in steps if st.kind == "trigger"), default=0.0)
     if s.watchdog_s and s.watchdog_s <= exposure_s + s.settle_s + 0.5:
+        fields.append("sphere.watchdog_s")
         problems.append(f"sphere.watchdog_s={s.watchdog_s:g} s does not cover the longest exposure "
                         f"({exposure_s:g} s) + settle ({s.settle_s:g} s) + 0.5 s: the sphere would go dark "
                         "mid-exposure")
     if peak_temp >= s.over_temperature_c:
+        fields.append("sphere.over_temperature_c")
         problems.append(f"predicted peak temperature {peak_temp:.1f} C reaches the interlock at "
                         f"{s.over_temperature_c:g} C: the run would hold until the sphere cools")
     n_frames = sum(1 for st in steps if st.kind == "fetch")
@@ -371,7 +375,8 @@ def budget(steps: Sequence[Step], config: RigConfig) -> dict[str, Any]:
             "max_current_a": round(max_current, 4), "max_total_current_a": s.max_total_current_a,
             "peak_temperature_c": round(peak_temp, 2), "over_temperature_c": s.over_temperature_c,
             "thermal_headroom_c": round(s.over_temperature_c - peak_temp, 2),
-            "longest_exposure_step_s": round(longest, 3), "problems": problems}
+            "longest_exposure_step_s": round(longest, 3), "problems": problems,
+            "problem_fields": fields}
 
 
 def _detail(s: Step) -> str:

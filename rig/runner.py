@@ -74,6 +74,16 @@ class Aborted(RigError):
 
 
 RETRYABLE = (DeviceTimeout, ProtocolError, DeviceBusy)
+OVER_TEMPERATURE, LED_FAULT = 0x01, 0x04          # LightStatus.fault_flags bits (docs/protocols/led-sphere-*.md)
+FAULT_NAMES = {OVER_TEMPERATURE: "over_temperature", LED_FAULT: "led_fault"}
+
+
+class FaultStop(RigError):
+    """The sphere reported a fault whose configured action stops the run (``[runner] on_led_fault`` ...)."""
+
+    def __init__(self, message: str, action: str, bits: int) -> None:
+        super().__init__(message)
+        self.action, self.bits = action, bits
 
 
 @dataclass
@@ -131,6 +141,7 @@ class RunControl:
         self._resume = threading.Event()
         self._critical = 0
         self._deferred: BaseException | None = None
+        self.closing = False                # the run is cleaning up: an abort is recorded, never raised
         self.notify: Callable[[str], None] = lambda msg: None
 
     @property
@@ -179,6 +190,8 @@ class RunControl:
     def interrupt(self, reason: str, signum: int | None = None) -> None:
         """Abort now: raise :class:`Aborted` in the running code (deferred inside a critical section)."""
         self.abort(reason, signum)
+        if self.closing:
+            return
         exc = Aborted(reason, signum)
         if self._critical:
             self._deferred = exc
@@ -213,8 +226,11 @@ def signal_handlers(control: RunControl) -> Iterator[RunControl]:
 class ProgressBar:
     """A progress bar with ETA for :func:`run_plan`'s ``progress`` callback.
 
-    ETA = remaining nominal time x (measured / nominal so far). On a terminal one line is redrawn; otherwise a
-    line is printed per frame.
+    ETA: each remaining step takes the mean measured duration of the steps of its kind run so far (its nominal
+    duration until one has run), less the time already spent in the current step. Per kind, because kinds differ
+    in how far they are from their nominal time (a simulated survey is instant, a simulated frame renders for
+    seconds): one pace for all read 0:00 long before the end (issue 18). On a terminal one line is redrawn;
+    otherwise a line is printed per frame.
     """
 
     def __init__(self, steps: Sequence[Step], stream: TextIO | None = None, *, width: int = 28,
@@ -228,13 +244,17 @@ class ProgressBar:
         self._t0: float | None = None
         self._nominal_run = 0.0
         self._last: int | None = None
+        self._t_step: float | None = None                   # when the step in progress started
+        self._measured: dict[str, list[float]] = {}         # kind -> measured durations of the steps run
         self.lines: list[str] = []
+        self.on_close: Callable[[], None] | None = None     # e.g. give the terminal line back to rig.feedback
 
     def eta_s(self, index: int, now: float) -> float:
-        remaining = sum(s.nominal_s for s in self.steps[index:])
-        if self._t0 is None or self._nominal_run < 0.5:
-            return remaining
-        return remaining * (now - self._t0) / self._nominal_run
+        mean = {k: sum(v) / len(v) for k, v in self._measured.items()}
+        remaining = sum(mean.get(s.kind, s.nominal_s) for s in self.steps[index:])
+        if self._t_step is not None and index == self._last:
+            remaining -= min(now - self._t_step, mean.get(self.steps[index].kind, self.steps[index].nominal_s))
+        return max(0.0, remaining)
 
     def render(self, index: int, step: Step, now: float) -> str:
         done_s = sum(s.nominal_s for s in self.steps[:index])
@@ -250,9 +270,11 @@ class ProgressBar:
         now = time.monotonic()
         if self._t0 is None and not skipped:
             self._t0 = now
-        if self._last is not None and not skipped and self._t0 is not None and self._last < index:
+        if self._last is not None and self._t_step is not None and self._last < index:
             self._nominal_run += self.steps[self._last].nominal_s
+            self._measured.setdefault(self.steps[self._last].kind, []).append(now - self._t_step)
         self._last = None if skipped else index
+        self._t_step = None if skipped else now
         line = self.render(index, step, now)
         self.lines.append(line)
         if self.tty:
@@ -266,6 +288,8 @@ class ProgressBar:
         if self.tty:
             self.stream.write("\n")
             self.stream.flush()
+        if self.on_close is not None:
+            self.on_close()
 
 
 # --------------------------------------------------------------------------------------------- runner
@@ -277,6 +301,10 @@ class RunOptions:
     watchdog_s: float | None = None          # arm the sphere's watchdog (if it has one) to this
     retries: int = 2                         # extra attempts of an idempotent step or a frame
     retry_delay_s: float = 0.2
+    busy_timeout_s: float = 10.0             # a BUSY device is asked again (backoff 0.05 s doubling to 1 s) this long
+    on_led_fault: str = "pause"              # the sphere's LED-fault bit: pause | abort | continue
+    on_over_temperature: str = "hold"        # its over-temperature bit: hold (dark until cool) | pause | abort
+    accept_faults: int = 0                   # fault bits the operator accepted (rig resume --accept-fault)
     hold_poll_s: float = 0.5                 # status polling while over-temperature
     max_hold_s: float = 1800.0
     lost_poll_s: float = 0.5                 # probing while a device is lost
@@ -316,6 +344,8 @@ class _Runner:
         self._restore = False
         self._closed = False           # the devices were closed by a failed reopen
         self._fired = False            # the trigger fired and the frame was not taken yet
+        self.accepted = opts.accept_faults    # fault bits that no longer stop the run
+        self._reported = 0                    # fault bits journalled in this run
         self._progress_takes_skipped = False
         if progress is not None:
             try:
@@ -347,7 +377,18 @@ class _Runner:
                         self._progress(s, skipped=True)
                     r.steps_skipped += len(unit)
                     continue
-                self._run_unit(unit)
+                while True:
+                    try:
+                        self._run_unit(unit)
+                        break
+                    except FaultStop as exc:
+                        if exc.action == "abort":
+                            raise
+                        self.control.request_pause(str(exc))
+                        if not self._pause(unit[0]):
+                            r.status, r.reason = "paused", str(exc)
+                            return r
+                        self.accepted |= exc.bits        # the operator resumed: this fault is known now
                 if unit[-1].kind == "checkpoint" and self.control.pause_requested:
                     if not self._pause(unit[-1]):
                         r.status, r.reason = "paused", self.control.pause_reason
@@ -359,7 +400,10 @@ class _Runner:
             r.reason = exc.reason if isinstance(exc, Aborted) else f"{type(exc).__name__}: {exc}"
             raise
         finally:
+            self.control.closing = True     # a Ctrl-C from now on is recorded, never raised into the cleanup
             with self.control.critical(discard=True):
+                if self.control.abort_requested and r.status != "aborted":
+                    r.status, r.reason = "aborted", self.control.abort_reason     # 2nd Ctrl-C during the exit
                 r.lights_off = self._lights_off(disarm=True)
                 if not r.lights_off:
                     self.say("WARNING: the sphere did not confirm all-off; its watchdog darkens it "
@@ -382,6 +426,8 @@ class _Runner:
     # -- units: one step, or the steps of one frame ------------------------------------------------------
     def _run_unit(self, unit: list[Step]) -> None:
         attempt = lost = 0
+        busy_t0: float | None = None     # first BUSY of this unit: asked again on the same connection until
+        busy_delay = 0.05                # busy_timeout_s, with backoff (no reconnect: the device answers)
         hold: str | None = None          # the interlock tripped: hold (inside the try, so its errors count)
         while True:
             self._fired = False
@@ -404,8 +450,23 @@ class _Runner:
                 if hold is not None:       # held longer than max_hold_s
                     raise
                 self._after_failure()
+                self._over_temperature(step, str(exc))
                 hold = str(exc)
-            except (*RETRYABLE, ConnectionLost) as exc:      # before DeviceRejected: DeviceBusy is one
+            except DeviceBusy as exc:
+                if step.kind == "trigger":
+                    self._fired = False          # the box refused the shot: no frame is on its way
+                self._after_failure()
+                now = time.monotonic()
+                busy_t0 = now if busy_t0 is None else busy_t0
+                if now - busy_t0 > self.opts.busy_timeout_s:
+                    raise
+                self.result.retries += 1
+                self.event("busy", step=step.index, error=str(exc), wait_s=round(busy_delay, 3),
+                           busy_for_s=round(now - busy_t0, 3))
+                self.say(f"step {step.index} ({step.kind}): device busy; asking again in {busy_delay:.2f} s")
+                self._sleep(busy_delay)
+                busy_delay = min(1.0, 2 * busy_delay)
+            except (*RETRYABLE, ConnectionLost) as exc:
                 self._after_failure()
                 attempt += 1
                 if not isinstance(exc, ConnectionLost) and attempt <= self.opts.retries:
@@ -423,6 +484,7 @@ class _Runner:
                 if not _over_temperature_refusal(exc):
                     raise
                 self._after_failure()
+                self._over_temperature(step, str(exc))
                 hold = str(exc)
 
     def _after_failure(self) -> None:
@@ -488,6 +550,7 @@ class _Runner:
             d.trigger.fire(p["exposure_s"])
             if self._lit:
                 st = d.light.status()
+                self._check_faults(st, step)
                 if st.over_temperature or not st.lit:
                     raise Interlocked(f"step {step.index}: the sphere went dark during the exposure "
                                       f"(over-temperature {st.over_temperature}, {st.temperature_c:.1f} C, "
@@ -538,8 +601,39 @@ class _Runner:
                     disarm_fn(None)
         return True
 
+    def _check_faults(self, st: Any, step: Step) -> None:
+        """Journal a new LED-fault bit (``fault`` event) and act on it as configured: ``continue``, or stop the
+        unit (:class:`FaultStop`) to pause or abort. The frame in progress is not journalled."""
+        bits = st.fault_flags & LED_FAULT
+        if not bits:
+            return
+        action = self.opts.on_led_fault
+        new = bits & ~self._reported
+        if new:
+            self._reported |= new
+            self.event("fault", step=step.index, fault="led_fault", fault_flags=st.fault_flags, action=action,
+                       accepted=bool(bits & self.accepted))
+            self.say(f"FAULT at step {step.index}: the sphere reports an LED fault (flags 0x{st.fault_flags:02X}); "
+                     f"action: {action if not bits & self.accepted else 'continue (accepted)'}")
+        if action == "continue" or bits & self.accepted == bits:
+            return
+        raise FaultStop(f"the sphere reports an LED fault (flags 0x{st.fault_flags:02X}) at step {step.index}; "
+                        "check the LEDs, then resume (rig resume --accept-fault led_fault to go on regardless)",
+                        action, bits)
+
+    def _over_temperature(self, step: Step, why: str) -> None:
+        """Journal the over-temperature bit (``fault`` event, once per run) and act: ``hold`` (the caller
+        holds), or :class:`FaultStop` to pause or abort."""
+        action = self.opts.on_over_temperature
+        if not self._reported & OVER_TEMPERATURE:
+            self._reported |= OVER_TEMPERATURE
+            self.event("fault", step=step.index, fault="over_temperature", reason=why, action=action)
+        if action != "hold":
+            raise FaultStop(f"over-temperature at step {step.index}: {why}", action, OVER_TEMPERATURE)
+
     def _interlock(self, step: Step) -> None:
         st = self.d.light.status()
+        self._check_faults(st, step)
         if st.over_temperature:         # the unit holds, then starts again from this select
             raise Interlocked(f"over-temperature ({st.temperature_c:.1f} C) before lighting step {step.index}")
 
@@ -656,5 +750,5 @@ def _units(steps: Sequence[Step]) -> list[list[Step]]:
     return out
 
 
-__all__ = ["Aborted", "DeviceLost", "Devices", "Interlocked", "ProgressBar", "RunControl", "RunOptions",
+__all__ = ["Aborted", "DeviceLost", "Devices", "FaultStop", "Interlocked", "ProgressBar", "RunControl", "RunOptions",
            "RunResult", "StepTimeout", "run_plan", "signal_handlers"]

@@ -4,8 +4,8 @@
   identities, the plan, (simulated sessions only) the scene's ground truth, and (``rig capture --calibration``)
   the calibration file with its revision and SHA-256. Written atomically once.
 - ``events.jsonl``: append-only journal, one JSON object per line, fsynced per event: ``start``, ``frame``,
-  ``survey``, ``stop`` and the runner's ``retry``, ``hold``, ``release``, ``lost``, ``reconnected``, ``pause``,
-  ``resume``, ``restart``, ``recovered``. A line cut short by a crash is ignored on read.
+  ``survey``, ``stop`` and the runner's ``retry``, ``busy``, ``fault``, ``hold``, ``release``, ``lost``,
+  ``reconnected``, ``pause``, ``resume``, ``restart``, ``recovered``. A line cut short by a crash is ignored on read.
 - one writer at a time: :meth:`Session.lock` holds an exclusive ``flock`` on ``.lock`` (released by the
   kernel even after ``kill -9``); :meth:`Session.recover` moves frames a crash left unjournalled to
   ``frames/orphans/`` (never deleted) so that a resumed run re-captures those steps.

@@ -32,18 +32,25 @@ class EsperTriggerModel:
     """Sans-IO model of an ESPER-style trigger box (``receive(bytes) -> bytes``, ``reset()``).
 
     Power-up state: mode 0, all outputs disabled, no bulb time, shot counter 0. Only mode 0 is simulated
-    (``m<d>`` with d != 0 is answered ``err:2``). ``S`` counts a shot and, if any output is enabled, calls
-    ``on_fire(bulb_ms / 1000)`` before answering ``tenFour``.
+    (``m<d>`` with d != 0 is answered ``err:2``). ``S`` counts a shot, calls ``on_fire(bulb_ms / 1000)`` and
+    answers ``tenFour`` at the start of the exposure; the box is then busy for the bulb time on ``clock``, and
+    an ``S`` meanwhile is answered ``err:4`` (BUSY) without firing. ``S`` while every output is disabled is
+    answered ``err:5`` (NO_OUTPUTS) and fires nothing (``docs/protocols/trigger-boxes.md``).
 
     Fault hooks (cleared by :meth:`reset`): ``error_next`` answers the next command ``err:<code>`` without
-    executing it; ``garble_next`` replaces the next reply by these bytes; ``fire_without_camera`` acknowledges
-    and counts ``S`` without telling the camera (an unplugged release cable). Byte-level faults (mute,
-    latency, split, corrupt, garbage) come from ``serve.Faults``.
+    executing it; ``busy_next`` answers the next N ``S`` BUSY; ``garble_next`` replaces the next reply by these
+    bytes; ``fire_without_camera`` acknowledges and counts ``S`` without telling the camera (an unplugged
+    release cable). ``busy_during_exposure = False`` drops the BUSY window (a host that does not wait for its
+    exposures, as the calibration's simulated world). Byte-level faults (mute, latency, split, corrupt, garbage)
+    come from ``serve.Faults``.
     """
 
     def __init__(self, on_fire: OnFire | None = None, *, maker: str = "ESPER", model: str = "TriggerBox",
-                 firmware: str = "1.0.0", serial: str = "TB-0001") -> None:
+                 firmware: str = "1.0.0", serial: str = "TB-0001",
+                 clock: Callable[[], float] = time.monotonic) -> None:
         self.on_fire = on_fire
+        self.clock = clock
+        self.busy_during_exposure = True
         self.identity = ec.Identity(maker, model, firmware, serial)
         ec.encode_reply(self.identity)   # validate the fields now, not on the first '?'
         self.reset()
@@ -58,8 +65,10 @@ class EsperTriggerModel:
         self.commands: list[bytes] = []       # every command line received, for tests
         self.callback_errors: list[BaseException] = []
         self.error_next: int | None = None
+        self.busy_next = 0
         self.garble_next: bytes | None = None
         self.fire_without_camera = False
+        self.busy_until = float("-inf")
 
     def receive(self, data: bytes) -> bytes:
         self._buf += data
@@ -104,8 +113,14 @@ class EsperTriggerModel:
         elif isinstance(cmd, ec.Fire):
             if self.bulb_ms is None:
                 return ec.encode_reply(ec.ErrorReply(ec.ERR_NO_BULB))
+            if self.busy_next > 0 or (self.busy_during_exposure and self.clock() < self.busy_until):
+                self.busy_next = max(0, self.busy_next - 1)
+                return ec.encode_reply(ec.ErrorReply(ec.ERR_BUSY))
+            if not any(self.enabled):
+                return ec.encode_reply(ec.ErrorReply(ec.ERR_NO_OUTPUTS))
             self.shots += 1
-            if any(self.enabled) and not self.fire_without_camera:
+            self.busy_until = self.clock() + self.bulb_ms / 1000.0
+            if not self.fire_without_camera:
                 exposure_s = self.bulb_ms / 1000.0
                 self.fired.append(exposure_s)
                 if self.on_fire is not None:

@@ -38,12 +38,40 @@ from ..errors import ConnectionLost, DeviceBusy, DeviceRejected, DeviceTimeout, 
 from ..transport import open_transport
 from . import codec
 
-__all__ = ["TotalStationFeed", "open_total_station", "rig_to_instrument", "instrument_to_rig"]
+# geocompy logs every timeout with a traceback; without a handler configured by the application it is dropped
+# here instead of reaching Python's last-resort handler (rig -v / --log-level shows it)
+logging.getLogger("geocompy").addHandler(logging.NullHandler())
+
+__all__ = ["SurveyImplausible", "TotalStationFeed", "open_total_station", "rig_to_instrument", "instrument_to_rig"]
 
 Xyz = tuple[float, float, float]
 
-_PROTOCOL_CODES = frozenset({codec.COM_CANT_DECODE, codec.COM_CLNT_RX_CHECKSUM_ERROR, codec.COM_TR_ID_MISMATCH})
+# COM_SRVR_RX_CHECKSUM_ERROR: the instrument received our request garbled. COM_FAILED is geocompy's code for
+# any other exception in an exchange: a reply it could not decode as ASCII (a corrupted byte >= 0x80; a
+# ProtocolError) or a port that failed (ConnectionLost); _Connection tells which.
+_PROTOCOL_CODES = frozenset({codec.COM_CANT_DECODE, codec.COM_CLNT_RX_CHECKSUM_ERROR, codec.COM_TR_ID_MISMATCH,
+                             codec.COM_SRVR_RX_CHECKSUM_ERROR})
 _LINK_CODES = frozenset({codec.COM_CANT_SEND, codec.COM_FAILED})
+
+
+class _Connection(SerialConnection):
+    """geocompy's ``SerialConnection`` that remembers whether the last exchange failed on an undecodable reply
+    (``garbled``): geocompy turns every exception into COM_FAILED, and a garbled reply is not a lost link."""
+
+    garbled = False
+
+    def exchange(self, cmd: str) -> str:
+        self.garbled = False
+        try:
+            return super().exchange(cmd)
+        except UnicodeDecodeError:
+            self.garbled = True
+            raise
+
+
+class SurveyImplausible(ProtocolError):
+    """A surveyed point lies farther from its target's expected position than ``max_error_mm``: a reply
+    corrupted in a way no check caught, or the instrument locked onto another reflector. Never journalled."""
 
 
 def _xyz(value: Any, what: str) -> Xyz:
@@ -84,13 +112,19 @@ class TotalStationFeed:
     additionally lets the instrument wait ``edm_wait_s`` for the distance. ``connection`` is the geocompy
     connection under ``geocom`` (taken from it when omitted); it is reset after a timeout or a garbled reply
     and closed by :meth:`close`. All calls are serialized by a lock, so threads may share one feed.
+
+    ``checksum``: the feed talks GeoCOM with CRC-16 (``geocom`` made with ``checksum=True``); every reply must
+    then carry a CRC field that matches (checked here again with :func:`codec.decode_reply`, since geocompy
+    skips a reply whose CRC field was lost), else :class:`ProtocolError`. ``max_error_mm``: plausibility check
+    of every survey against the target's expected position (:class:`SurveyImplausible`; None = off).
     """
 
     kind = "total_station"
 
     def __init__(self, geocom: GeoCom, *, station_xyz_mm: Xyz, station_yaw_deg: float = 0.0,
                  targets: Mapping[str, Xyz], timeout_s: float = 5.0, edm_wait_s: float = 3.0,
-                 use_atr: bool = True, connection: Any | None = None) -> None:
+                 use_atr: bool = True, connection: Any | None = None, checksum: bool = False,
+                 max_error_mm: float | None = None) -> None:
         if not targets:
             raise ValueError("targets: at least one named target position is needed")
         if not (timeout_s > 0 and math.isfinite(timeout_s)):
@@ -107,6 +141,10 @@ class TotalStationFeed:
         self.timeout_s = float(timeout_s)
         self.edm_wait_s = float(edm_wait_s)
         self.use_atr = bool(use_atr)
+        self.checksum = bool(checksum)
+        if max_error_mm is not None and not (max_error_mm > 0 and math.isfinite(max_error_mm)):
+            raise ValueError(f"max_error_mm must be a positive number or None, got {max_error_mm!r}")
+        self.max_error_mm = max_error_mm
         self._lock = threading.Lock()
         self._origin_enh_m: Xyz | None = None
         self._closed = False
@@ -187,6 +225,13 @@ class TotalStationFeed:
             raise ProtocolError(f"TMC_GetCoordinate reply carried no coordinates: {resp.response!r}") from exc
         delta = (enh[0] - origin[0], enh[1] - origin[1], enh[2] - origin[2])
         xyz = instrument_to_rig(delta, station_xyz_mm=self.station_xyz_mm, station_yaw_deg=self.station_yaw_deg)
+        if self.max_error_mm is not None:
+            expected = self._targets[target]
+            off = math.dist(xyz, expected)
+            if not off <= self.max_error_mm:
+                raise SurveyImplausible(f"total station: {target!r} surveyed at {tuple(round(v, 2) for v in xyz)} mm, "
+                                        f"{off:.1f} mm from its expected position (max_survey_error_mm = "
+                                        f"{self.max_error_mm:g}); not used")
         return SurveyedPoint(name=target, xyz_mm=xyz, warning=", ".join(dict.fromkeys(warnings)) or None)
 
     def close(self) -> None:
@@ -251,6 +296,12 @@ class TotalStationFeed:
         matching typed error. Warning names are appended to ``warnings``."""
         code = self._code_of(resp)
         severity = codec.classify(code)
+        if self.checksum and severity is not codec.Severity.ERROR:
+            try:
+                codec.decode_reply(resp.response, require_crc=True)
+            except codec.ProtocolError as exc:
+                self._resync()
+                raise ProtocolError(f"total station: reply to {what} failed its CRC check ({exc})") from None
         if severity is codec.Severity.OK:
             if values and resp.params is None:
                 raise ProtocolError(f"total station: {what} reply could not be parsed: {resp.response!r}")
@@ -264,7 +315,7 @@ class TotalStationFeed:
         if code == codec.COM_TIMEDOUT:
             self._resync()
             raise DeviceTimeout(f"total station did not answer {what} within {self.timeout_s:.3g} s")
-        if code in _PROTOCOL_CODES:
+        if code in _PROTOCOL_CODES or (code == codec.COM_FAILED and getattr(self._conn, "garbled", False)):
             self._resync()
             raise ProtocolError(f"total station: bad reply to {what} ({name}): {resp.response!r}")
         if code in _LINK_CODES:
@@ -277,7 +328,8 @@ class TotalStationFeed:
 def open_total_station(url: str, *, station_xyz_mm: Xyz, station_yaw_deg: float = 0.0,
                        targets: Mapping[str, Xyz], checksum: bool = False, timeout_s: float = 5.0,
                        baudrate: int = 9600, edm_wait_s: float = 3.0, use_atr: bool = True,
-                       connect_attempts: int = 2, logger: logging.Logger | None = None) -> TotalStationFeed:
+                       connect_attempts: int = 2, logger: logging.Logger | None = None,
+                       max_error_mm: float | None = None) -> TotalStationFeed:
     """Open ``url`` with pyserial (device path, pty path, ``socket://host:port``...), connect geocompy's
     ``GeoCom`` (which probes the instrument and sleeps about 1 s) and return the feed.
 
@@ -285,7 +337,7 @@ def open_total_station(url: str, *, station_xyz_mm: Xyz, station_yaw_deg: float 
     instrument answers on it."""
     port = open_transport(url, baudrate=baudrate, timeout_s=timeout_s)
     try:
-        connection = SerialConnection(port, logger=logger)
+        connection = _Connection(port, logger=logger)
         geocom = GeoCom(connection, logger=logger, checksum=checksum, attempts=connect_attempts)
     except ConnectionRefusedError as exc:
         port.close()
@@ -295,4 +347,4 @@ def open_total_station(url: str, *, station_xyz_mm: Xyz, station_yaw_deg: float 
         raise
     return TotalStationFeed(geocom, station_xyz_mm=station_xyz_mm, station_yaw_deg=station_yaw_deg,
                             targets=targets, timeout_s=timeout_s, edm_wait_s=edm_wait_s, use_atr=use_atr,
-                            connection=connection)
+                            connection=connection, checksum=checksum, max_error_mm=max_error_mm)

@@ -44,11 +44,13 @@ ERR_UNKNOWN_COMMAND = 1
 ERR_BAD_ARGUMENT = 2
 ERR_NO_BULB = 3                   # 'S' before any 'b<ms>'
 ERR_BUSY = 4                      # 'S' while an exposure is still running
+ERR_NO_OUTPUTS = 5                # 'S' while every output is disabled: nothing would fire
 ERROR_NAMES = {
     ERR_UNKNOWN_COMMAND: "UNKNOWN_COMMAND",
     ERR_BAD_ARGUMENT: "BAD_ARGUMENT",
     ERR_NO_BULB: "NO_BULB",
     ERR_BUSY: "BUSY",
+    ERR_NO_OUTPUTS: "NO_OUTPUTS",
 }
 
 
@@ -287,6 +289,7 @@ class EsperTrigger:
         self.wait_for_exposure = wait_for_exposure
         self.name = name
         self._configured = False
+        self._busy_until = float("-inf")
         self._lock = threading.RLock()
         self._closed = False
 
@@ -371,14 +374,31 @@ class EsperTrigger:
             self._configured = True
 
     def fire(self, exposure_s: float) -> None:
-        """Open the shutter for ``exposure_s`` (rounded to whole ms); return once the exposure is over."""
+        """Open the shutter for ``exposure_s`` (rounded to whole ms); return once the exposure is over.
+
+        A box that answers ``S`` with NO_OUTPUTS lost its configuration (power-cycled): it is configured again
+        and ``S`` sent once more. BUSY while our own previous exposure may still be running on the box (it started
+        when the box answered, which is after we timed it from) is waited out once; any other BUSY raises
+        :class:`DeviceBusy`."""
         ms = bulb_ms_for(exposure_s, min_exposure_s=self.min_exposure_s, max_exposure_s=self.max_exposure_s)
         with self._lock:
             if not self._configured:
                 self.configure()
             self._expect_ack(SetBulb(ms))
             t_fire = time.monotonic()
-            self._expect_ack(Fire(), timeout_s=self.timeout_s + ms / 1000.0)
+            try:
+                self._expect_ack(Fire(), timeout_s=self.timeout_s + ms / 1000.0)
+            except DeviceRejected as exc:
+                own = exc.code == ERR_BUSY and time.monotonic() < self._busy_until + 0.05
+                if exc.code != ERR_NO_OUTPUTS and not own:
+                    raise
+                if own:
+                    time.sleep(max(0.0, self._busy_until - time.monotonic()) + 0.002)
+                else:
+                    self.configure()
+                t_fire = time.monotonic()
+                self._expect_ack(Fire(), timeout_s=self.timeout_s + ms / 1000.0)
+            self._busy_until = time.monotonic() + ms / 1000.0      # the latest our exposure can end on the box
             if self.wait_for_exposure:
                 remaining = t_fire + ms / 1000.0 - time.monotonic()
                 if remaining > 0:

@@ -260,7 +260,7 @@ def _session_name(prefix: str, sessions_dir: Path) -> str:
 def _rig(config: RigConfig, geometry: RigGeometry, world: Any | None) -> Iterator[tuple[Any, Any]]:
     """Open the devices (starting the simulators first when the config asks for them)."""
     from ..capture import uses_simulators
-    from ..factory import open_devices, start_simulators
+    from ..factory import open_devices, skip_exposure_waits, start_simulators
 
     with contextlib.ExitStack() as stack:
         sim = None
@@ -274,9 +274,7 @@ def _rig(config: RigConfig, geometry: RigGeometry, world: Any | None) -> Iterato
         devices = open_devices(config, geometry, sim)
         stack.callback(devices.close)
         if sim is not None:
-            # the simulated camera renders at once: no need to wait the exposure out in real time
-            if hasattr(devices.trigger, "wait_for_exposure"):
-                devices.trigger.wait_for_exposure = False
+            skip_exposure_waits(devices, sim)     # the simulated camera renders at once
         yield devices, sim
 
 

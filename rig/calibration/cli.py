@@ -43,6 +43,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                        help="folder for the capture sessions (default: <out folder>/calibration-sessions)")
         q.add_argument("--yes", action="store_true",
                        help="do not wait for Enter at operator prompts (targets already in place)")
+        q.add_argument("--require-predecessors", action="store_true",
+                       help="refuse to run a step whose earlier steps are not in the calibration file (by default "
+                            "it warns and uses their design values)")
         q.add_argument("--json", action="store_true", help="print the result as JSON")
         q.set_defaults(func=run_cli)
     return p
@@ -80,7 +83,7 @@ def run_cli(args: argparse.Namespace) -> int:
 
     config = load_config(args.config)
     settings = load_settings(config)
-    say = (lambda m: None) if args.json else (lambda m: print(m, file=sys.stderr, flush=True))
+    say = getattr(args, "feedback", None) or (lambda m: print(m, file=sys.stderr, flush=True))   # stderr
     steps = ORDER if args.step == "all" else (args.step,)
     world = None
     if args.sim:
@@ -91,10 +94,13 @@ def run_cli(args: argparse.Namespace) -> int:
     reports = []
     for step in steps:
         rep = run_step(step, config, out=args.out, sessions_dir=args.sessions, settings=settings, simulate=args.sim,
-                       world=world, operator=_operator(args), say=say)
+                       world=world, operator=_operator(args), say=say,
+                       require_predecessors=args.require_predecessors)
         reports.append(rep)
         if not args.json:
             print(f"{step}: revision {rep.revision} of {rep.file} ({rep.seconds:.1f} s; session {rep.session})")
+            for w in rep.warnings:
+                print(f"  WARNING: {w}")
             for line in rep.output.summary:
                 print(f"  {line}")
             if rep.truth is not None:

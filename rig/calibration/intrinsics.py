@@ -24,6 +24,11 @@ from .context import StepContext, StepOutput
 from .settings import BoardSettings, aruco_dictionary
 
 SECTION = "intrinsics"
+# measured (issue 18): on the simulated rig k2 came out -1.74 against a true +0.22 while the model's rotation-free
+# reprojection error stayed within tolerance: k1, k2 (and the focal length) trade off against each other
+DISTORTION_NOTE = ("the distortion coefficients are correlated with each other and with the focal length: use them "
+                   "together with fx, fy, cx, cy as one model (its rotation-free error is what is checked); "
+                   "each coefficient alone is unreliable and is not a lens property to compare or reuse")
 FloatArray = npt.NDArray[np.float64]
 
 __all__ = ["SECTION", "shots", "compute", "compare", "charuco_board", "detect_charuco", "calibrate_views"]
@@ -122,9 +127,11 @@ def compute(ctx: StepContext, cap: Captured) -> StepOutput:
     result = intr.to_dict()
     result["board"] = {"squares": [b.squares_x, b.squares_y], "square_mm": b.square_mm, "marker_mm": b.marker_mm,
                        "dictionary": b.dictionary}
+    result["distortion_note"] = DISTORTION_NOTE
     summary = [f"fx {intr.fx_px:.2f} px, fy {intr.fy_px:.2f} px, cx {intr.cx_px:.2f}, cy {intr.cy_px:.2f}; "
                f"k1 {intr.distortion[0]:.4f}, k2 {intr.distortion[1]:.4f}; RMS {res['rms_reprojection_px']:.3f} px "
-               f"over {res['corners']} corners in {len(views)} views"]
+               f"over {res['corners']} corners in {len(views)} views",
+               "note: " + DISTORTION_NOTE]
     return StepOutput(result, res, {"design_fx_px": cam.fx_px}, summary)
 
 

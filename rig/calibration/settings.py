@@ -6,7 +6,7 @@ anything left out takes the default here. Errors name the file and the dotted fi
 from __future__ import annotations
 
 import tomllib
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -152,58 +152,33 @@ class CalibrationSettings:
         return out
 
 
-def _coerce(file: str, where: str, proto: Any, value: Any) -> Any:
-    """Check a TOML value against the default's type."""
-    def bad(expected: str) -> ConfigError:
-        return ConfigError(file, where, expected, value)
+def _model() -> Any:
+    global _MODEL
+    if _MODEL is None:
+        from ..schema import model_from_dataclass
 
-    if isinstance(proto, bool):
-        if not isinstance(value, bool):
-            raise bad("true or false")
-        return value
-    if isinstance(proto, int):
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise bad("an integer")
-        return value
-    if isinstance(proto, float):
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value):
-            raise bad("a finite number")
-        return float(value)
-    if isinstance(proto, str):
-        if not isinstance(value, str):
-            raise bad("a string")
-        return value
-    if isinstance(proto, tuple) or proto is None:
-        if not isinstance(value, list) or not all(isinstance(v, (int, float)) and not isinstance(v, bool)
-                                                  for v in value):
-            raise bad("a list of numbers")
-        if where.endswith(".leds"):
-            if not all(isinstance(v, int) and v >= 0 for v in value):
-                raise bad("a list of LED indices (integers >= 0)")
-            return tuple(int(v) for v in value)
-        if len(value) != 3 or not all(np.isfinite(v) for v in value):
-            raise bad("a list of 3 finite numbers")
-        return tuple(float(v) for v in value)
-    raise bad("a value")  # pragma: no cover
+        _MODEL = model_from_dataclass(CalibrationSettings, name="CalibrationTable")
+    return _MODEL
+
+
+_MODEL: Any = None
 
 
 def _parse(file: str, table: Any, config: RigConfig | None = None) -> CalibrationSettings:
-    if not isinstance(table, dict):
-        raise ConfigError(file, "calibration", "a table [calibration]", type(table).__name__)
+    """Check ``table`` against the schema built from these dataclasses (unknown keys refused with a "did you
+    mean", strict types), then the rules across keys (:func:`_check`)."""
+    from ..schema import validate
+
+    model = validate(table, file, _model(), prefix=("calibration",))
     s = CalibrationSettings()
-    for name, sub in table.items():
-        if not any(f.name == name for f in fields(s)):
-            raise ConfigError(file, f"calibration.{name}", "one of " + ", ".join(f.name for f in fields(s)), name)
-        if not isinstance(sub, dict):
-            raise ConfigError(file, f"calibration.{name}", f"a table [calibration.{name}]", sub)
+    for name, changes in model.model_dump(exclude_unset=True).items():
         section = getattr(s, name)
-        changes = {}
-        for key, value in sub.items():
+        for key, value in list(changes.items()):
             where = f"calibration.{name}.{key}"
-            fs = {f.name: f for f in fields(section)}
-            if key not in fs:
-                raise ConfigError(file, where, "one of " + ", ".join(fs), key)
-            changes[key] = _coerce(file, where, getattr(section, key), value)
+            if key == "leds" and any(v < 0 for v in value):
+                raise ConfigError(file, where, "a list of LED indices (integers >= 0)", list(value))
+            if isinstance(value, tuple) and key != "leds":
+                changes[key] = tuple(float(v) for v in value)
         s = replace(s, **{name: replace(section, **changes)})
     if config is not None:
         s = resolve_sizes(config, s)

@@ -12,7 +12,7 @@ Every section carries ``provenance``: ``created`` (ISO time), ``session`` (the c
 frames are in), ``software_version``, ``config`` (the rig config file), ``inputs`` (which earlier sections and
 design values it used) and, for simulated runs, ``simulated: true``. ``revision`` counts writes of the file;
 each section records the revision that wrote it, and the previous file is kept as
-``<name>.history/r<revision>.json``. Writes are atomic (temporary file, fsync, rename).
+``<name>.history/rNNNN.json`` (four-digit revision, ``r0001.json``). Writes are atomic (temporary file, fsync, rename).
 
 :func:`load_calibration` validates the document and raises :class:`CalibrationError` naming the file and the
 dotted field; :class:`Calibration` gives the estimators what they consume (a ``PinholeCamera``, the lens
@@ -169,15 +169,31 @@ def _validate(file: str, doc: Any) -> dict[str, Any]:
     if ver != SCHEMA_VERSION:
         raise CalibrationError(file, "schema_version", f"{SCHEMA_VERSION} (this software's calibration schema)",
                                ver)
+    from ..schema import did_you_mean
+
+    for key in doc:
+        if key not in _TOP_KEYS:
+            raise CalibrationError(file, key, "a key of a calibration file" + did_you_mean(key, _TOP_KEYS) + " ("
+                                   + ", ".join(_TOP_KEYS) + ")", key)
     v = _V(file, doc, "")
     v.num("revision", lo=0)
     steps = v.table("steps")
     for name, sec in steps.data.items():
         if name not in STEP_SECTIONS:
-            raise CalibrationError(file, f"steps.{name}", "a calibration step (" + ", ".join(STEP_SECTIONS) + ")",
-                                   name)
+            raise CalibrationError(file, f"steps.{name}", "a calibration step" + did_you_mean(name, STEP_SECTIONS)
+                                   + " (" + ", ".join(STEP_SECTIONS) + ")", name)
+        if isinstance(sec, dict):
+            for key in sec:
+                if key not in _SECTION_KEYS:
+                    raise CalibrationError(file, f"steps.{name}.{key}", "a key of a calibration section"
+                                           + did_you_mean(key, _SECTION_KEYS) + " (" + ", ".join(_SECTION_KEYS) + ")",
+                                           key)
         _validate_section(file, name, sec)
     return doc
+
+
+_TOP_KEYS = ("format", "schema_version", "rig", "revision", "updated", "steps")
+_SECTION_KEYS = ("result", "residuals", "provenance", "revision")
 
 
 # ---------------------------------------------------------------------------------------------- I/O

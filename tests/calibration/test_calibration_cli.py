@@ -42,6 +42,23 @@ def test_cli_extinction_json(tmp_path, capsys):
     assert abs(step["truth_comparison"]["ratio_rel_error"]) < 0.05
     assert load_calibration(out).result("extinction")["passed"] is True
     assert (tmp_path / "calibration-sessions").is_dir()
+    # run alone: its predecessors are missing, so it says it used design values (issue 18: it was silent)
+    (warning,) = step["warnings"]
+    assert "intrinsics, rig-frame, radiometry, led-directions, gains" in warning and "design values" in warning
+    prov = load_calibration(out).section("extinction")["provenance"]
+    assert prov["inputs"]["missing_predecessors"] == ["intrinsics", "rig-frame", "radiometry", "led-directions",
+                                                      "gains"]
+
+
+def test_a_step_without_its_predecessors_can_be_refused(tmp_path, cal_config):
+    out = tmp_path / "cal.json"
+    with pytest.raises(CalibrationFailed, match="has no intrinsics, rig-frame.*section"):
+        run_step("seed-k", cal_config, out=out, simulate=True, require_predecessors=True)
+    assert not out.exists() and not (tmp_path / "calibration-sessions").exists()    # nothing was captured
+
+
+def test_the_chain_in_order_warns_about_nothing(chain):
+    assert all(not r.warnings for r in chain["reports"].values())
 
 
 def test_cli_rig_frame_with_true_intrinsics_meets_0_1_deg(tmp_path, capsys, cal_config, cal_settings):

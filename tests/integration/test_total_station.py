@@ -438,3 +438,39 @@ def test_simulator_main_serves_tcp():
     finally:
         proc.terminate()
         proc.wait(timeout=5)
+
+
+# ------------------------------------------------------------------------------ corrupted replies (issue 18)
+def _corruption_probe():
+    import importlib.util
+    path = Path(__file__).resolve().parents[2] / "probes" / "geocom_corruption.py"
+    spec = importlib.util.spec_from_file_location("geocom_corruption", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_corrupted_replies_are_never_returned_as_good_with_the_crc_on():
+    """Bits flipped in the instrument's replies over TCP: with the GeoCOM CRC (the config's default) and the
+    plausibility check no returned coordinate is wrong; without either, the same link returns wrong ones (so
+    the check can fail). probes/geocom_corruption.py runs the 300-survey version."""
+    probe = _corruption_probe()
+    on = probe.run(80, 0.01, crc=True, max_error_mm=50.0, seed=3)
+    assert on["silently_wrong"] == 0 and on["retries"] > 0 and on["failed"] < on["surveys"] // 10
+    off = probe.run(80, 0.01, crc=False, max_error_mm=None, seed=3)
+    assert off["silently_wrong"] > 0
+
+
+def test_implausible_survey_is_refused(tcp):
+    """A point far from its target's expected position raises SurveyImplausible (a ProtocolError: retried,
+    never journalled)."""
+    from drivers.total_station import driver as ts_driver
+    feed = tcp.feed
+    moved = {**feed.targets}
+    name = next(iter(moved))
+    x, y, z = moved[name]
+    moved[name] = (x + 8.0, y, z)          # ATR still finds the reflector, 8 mm from where it is expected
+    strict = TotalStationFeed(feed.geocom, station_xyz_mm=feed.station_xyz_mm, station_yaw_deg=feed.station_yaw_deg,
+                              targets=moved, max_error_mm=3.0, connection=None, timeout_s=2.0)
+    with pytest.raises(ts_driver.SurveyImplausible, match="from its expected position"):
+        strict.measure(name)

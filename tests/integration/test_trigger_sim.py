@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from drivers.camera import FolderCamera
-from drivers.errors import ConnectionLost, DeviceRejected, DeviceTimeout, LimitError, ProtocolError
+from drivers.errors import ConnectionLost, DeviceBusy, DeviceRejected, DeviceTimeout, LimitError, ProtocolError
 from drivers.trigger import open_esper_trigger
 from simulators.dng import write_dng
 from simulators.serve import Faults, serve
@@ -56,13 +56,67 @@ def test_model_reset_restores_power_up_state_and_clears_faults():
 
 
 def test_model_without_enabled_outputs_or_with_camera_unplugged_does_not_fire():
+    """``S`` with every output disabled fires nothing and is refused err:5 NO_OUTPUTS (tenFour means the outputs
+    fired, docs/protocols/trigger-boxes.md); with the release cable unplugged the box fires into nothing."""
     fired: list[float] = []
     model = EsperTriggerModel(fired.append)
-    assert model.receive(b"b10\nS\n") == b"tenFour\ntenFour\n"     # power-up: outputs disabled
+    assert model.receive(b"b10\nS\n") == b"tenFour\nerr:5\n"     # power-up: outputs disabled
+    assert model.shots == 0
     model.receive(b"s000001\n")
     model.fire_without_camera = True
-    model.receive(b"S\n")
-    assert fired == [] and model.shots == 2
+    assert model.receive(b"S\n") == b"tenFour\n"
+    assert fired == [] and model.shots == 1
+
+
+def test_overlapping_fire_is_answered_busy():
+    """A second ``S`` while the first exposure still runs is refused err:4 BUSY and fires nothing; once the bulb
+    time is over the box fires again."""
+    now = [100.0]
+    fired: list[float] = []
+    model = EsperTriggerModel(fired.append, clock=lambda: now[0])
+    assert model.receive(b"s111111\nb500\nS\n") == b"tenFour\ntenFour\ntenFour\n"
+    now[0] += 0.2
+    assert model.receive(b"S\n") == b"err:4\n"
+    now[0] += 0.31
+    assert model.receive(b"S\n") == b"tenFour\n"
+    assert fired == [0.5, 0.5] and model.shots == 2
+
+
+def test_driver_reconfigures_a_power_cycled_box(tmp_path):
+    """A box that lost its output configuration (power-cycled) answers ``S`` NO_OUTPUTS; the driver sends
+    ``m0`` and ``s...`` again and fires, over a real pty."""
+    fired: list[float] = []
+    server, model = start_esper_simulator("pty", fired.append)
+    try:
+        with open_esper_trigger(server.url, timeout_s=0.5) as trig:
+            trig.fire(0.01)
+            model.reset()                                  # power cycle: outputs disabled, no bulb time
+            model.on_fire = fired.append
+            trig.fire(0.01)
+        assert fired == [0.01, 0.01]
+        assert model.commands == [b"b10", b"S", b"m0", b"s111111", b"S"]     # refused, configured, fired
+    finally:
+        server.close()
+
+
+def test_driver_busy_over_a_pty():
+    """A box busy for a reason of its own raises DeviceBusy (the runner asks again with backoff); a BUSY caused by
+    our own previous exposure, still running on the box, is waited out once and the shot fires."""
+    fired: list[float] = []
+    server, model = start_esper_simulator("pty", fired.append)
+    try:
+        with open_esper_trigger(server.url, timeout_s=0.5, wait_for_exposure=False) as trig:
+            model.busy_next = 1
+            with pytest.raises(DeviceBusy) as err:
+                trig.fire(0.2)
+            assert err.value.code == 4 and fired == []
+            trig.fire(0.2)
+            t0 = time.monotonic()
+            trig.fire(0.2)                     # the host did not wait the first exposure out: BUSY, waited out
+            assert fired == [0.2, 0.2] and time.monotonic() - t0 >= 0.15
+            assert model.commands.count(b"S") == 4            # refused, fired, refused (busy), fired
+    finally:
+        server.close()
 
 
 # ------------------------------------------------------------------------------ over pty and TCP

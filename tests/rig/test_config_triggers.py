@@ -124,7 +124,7 @@ def test_gphoto2_camera_parses_with_driver_defaults():
      "one of external, capture"),
     ({"driver": "gphoto2", "folder": "dl", "delete_after_download": "yes"}, "camera.delete_after_download",
      "true or false"),
-    ({"port": "usb:001,002"}, "camera.port", 'no such key with driver "folder"'),
+    ({"port": "usb:001,002"}, "camera.port", "a key of [camera] for driver 'folder' (it is a key of driver 'gphoto2')"),
 ])
 def test_bad_camera_driver_values_name_the_field(camera, field, expected):
     with pytest.raises(ConfigError) as err:

@@ -18,7 +18,7 @@ from rig.config import default_config_text, parse_config
 from rig.factory import open_devices, start_simulators
 from rig.geometry import rig_geometry
 from rig.plan import build_plan
-from rig.runner import Aborted, ProgressBar, RunControl, run_plan, signal_handlers
+from rig.runner import Aborted, FaultStop, ProgressBar, RunControl, run_plan, signal_handlers
 from rig.session import Session
 
 SMALL = {"sphere": {"geodesic_frequency": 3, "watchdog_s": 1.5},
@@ -67,9 +67,9 @@ class Env:
 
     def run(self, steps, session, **kw):
         opts = {**FAST, "watchdog_s": self.cfg.sphere.watchdog_s, **kw}
+        reopen = opts.pop("reopen", lambda: open_devices(self.cfg, self.geo, self.sim))
         return run_plan(steps, self.devices, session, led_directions=self.geo.led_directions,
-                        pattern_peak=self.cfg.sphere.pattern_peak, fetch_timeout_s=10.0,
-                        reopen=lambda: open_devices(self.cfg, self.geo, self.sim), **opts)
+                        pattern_peak=self.cfg.sphere.pattern_peak, fetch_timeout_s=10.0, reopen=reopen, **opts)
 
     def dark(self):
         return not self.model.lit
@@ -160,19 +160,84 @@ def test_interlock_holds_while_over_temperature_then_continues(env):
     assert env.dark()
 
 
-def test_busy_sphere_is_retried(env):
+def test_led_fault_bit_pauses_the_capture_with_a_journal_event(env):
+    """The sphere's LED-fault status bit (issue 18: it used to be ignored) is journalled as a ``fault`` event and
+    pauses the run before the frame it may have spoilt is journalled; the resumed run (the operator checked the
+    LEDs: accept_faults) completes with every frame."""
+    steps = plan(env, ("gradients",))
+    s = env.session(steps)
+    fault_at = at(steps, "trigger", 2).index
+
+    def fault(i, n, step):
+        if i == fault_at:
+            env.model.led_fault = True
+    try:
+        result = env.run(steps, s, progress=fault, control=RunControl(pause_mode="stop"))
+        assert result.status == "paused" and "LED fault" in result.reason
+        (f,) = events(s, "fault")
+        assert f["fault"] == "led_fault" and f["fault_flags"] & 0x04 and f["action"] == "pause"
+        before = sum(1 for st in steps[:fault_at] if st.kind == "fetch")
+        assert f["step"] == fault_at and len(s.frames()) == before and env.dark()
+        assert s.status() == "paused" and events(s, "pause")
+        again = env.run(steps, s, control=RunControl(pause_mode="stop"))     # still faulty: pauses again
+        assert again.status == "paused" and len(s.frames()) == before
+        done = env.run(steps, s, control=RunControl(pause_mode="stop"), accept_faults=0x04)
+        assert done.status == "complete" and len(s.frames()) == 5
+    finally:
+        env.model.led_fault = False
+
+
+@pytest.mark.parametrize("action", ["abort", "continue"])
+def test_led_fault_action_is_configurable(env, action):
+    steps = plan(env, ("gradients",))
+    s = env.session(steps)
+    env.model.led_fault = True
+    try:
+        if action == "abort":
+            with pytest.raises(FaultStop):
+                env.run(steps, s, on_led_fault="abort")
+            assert s.status() == "aborted" and [f.pattern for f in s.frames()] == ["ambient"]   # dark: no check
+        else:
+            assert env.run(steps, s, on_led_fault="continue").status == "complete"
+            assert len(s.frames()) == 5
+        assert [e["action"] for e in events(s, "fault")] == [action] and env.dark()
+    finally:
+        env.model.led_fault = False
+
+
+def test_over_temperature_can_pause_instead_of_holding(env):
+    steps = plan(env, ("gradients",))
+    s = env.session(steps)
+    env.model.force_over_temperature = True
+    try:
+        result = env.run(steps, s, on_over_temperature="pause", control=RunControl(pause_mode="stop"))
+    finally:
+        env.model.force_over_temperature = False
+    assert result.status == "paused" and "over-temperature" in result.reason
+    (f,) = events(s, "fault")
+    assert f["fault"] == "over_temperature" and f["action"] == "pause" and not events(s, "hold")
+    assert env.run(steps, s).status == "complete" and len(s.frames()) == 5
+
+
+@pytest.mark.parametrize("n_busy", [1, 3, 6])
+def test_busy_sphere_is_asked_again_on_the_same_connection(env, n_busy):
+    """A BUSY reply is asked again with backoff on the same connection: no device is reopened however many
+    BUSY replies come (issue 18: three of them used to drop and reopen every device)."""
     steps = plan(env, ("gradients",))
     s = env.session(steps)
     busy_at = at(steps, "select", 2).index
+    opened = []
 
     def busy(i, n, step):
-        if i == busy_at and not events(s, "retry"):
-            env.model.busy_for(1)
-    result = env.run(steps, s, progress=busy)
-    assert result.status == "complete" and result.retries == 1
-    (r,) = events(s, "retry")
-    assert r["step"] == busy_at and "DeviceBusy" in r["error"]
-    assert len(s.frames()) == 5
+        if i == busy_at and not events(s, "busy"):
+            env.model.busy_for(n_busy)
+    result = env.run(steps, s, progress=busy, reopen=lambda: opened.append(1))
+    assert result.status == "complete" and result.reconnects == 0 and not opened
+    got = events(s, "busy")
+    assert len(got) == n_busy and result.retries == n_busy
+    assert all(r["step"] == busy_at and "BUSY" in r["error"] for r in got)
+    assert [r["wait_s"] for r in got] == [min(1.0, 0.05 * 2 ** k) for k in range(n_busy)]   # backoff
+    assert not events(s, "lost") and len(s.frames()) == 5
 
 
 @pytest.mark.parametrize("role", ["trigger", "sphere"])
@@ -347,6 +412,29 @@ def test_progress_bar_counts_frames_and_gives_an_eta():
     assert "frame 4/5" in lines[-1] and "ETA " in lines[-1]
     pct = [int(line.split("]")[1].split("%")[0]) for line in lines]
     assert pct == sorted(pct) and pct[-1] < 100
+
+
+def test_progress_eta_learns_each_step_kinds_pace():
+    """The ETA prices each remaining step at the measured mean of its kind: surveys that are instant and frames
+    that take 3x their nominal time (issue 18: one pace for all read 0:00 ten seconds early)."""
+    cfg = small_config()
+    steps = build_plan(cfg, rig_geometry(cfg).led_directions, estimate=("gradients", "single-image"))
+    bar = ProgressBar(steps, io.StringIO(), tty=False)
+    cost = [0.0 if st.kind == "survey" else 3.0 * st.nominal_s for st in steps]
+    clock = [0.0]
+    real = time.monotonic
+    time.monotonic = lambda: clock[0]
+    seen = []
+    try:
+        for st in steps:
+            bar(st.index, len(steps), st)
+            if st.kind == "fetch":
+                seen.append((bar.eta_s(st.index, clock[0]), sum(cost[st.index:])))
+            clock[0] += cost[st.index]
+    finally:
+        time.monotonic = real
+    later = seen[len(seen) // 2:]
+    assert all(0.6 * truth <= eta <= 1.6 * truth for eta, truth in later), seen
 
 
 def test_control_defers_a_signal_abort_out_of_journal_writes():
