@@ -69,8 +69,8 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.sparse import csr_matrix
 from scipy.spatial import cKDTree
 
-from .single_image import (Lights, Patches, SingleImageResult, estimate_single_image, map_parameters,
-                           patch_irradiance, predict_radiance, sigma_a_verdict)
+from .single_image import (MAX_OK_INTERVAL_RATIO, Lights, Patches, SingleImageResult, estimate_single_image,
+                           map_parameters, parameter_status, patch_irradiance, predict_radiance, sigma_a_verdict)
 
 __all__ = ["ReferenceRenderer", "ReferenceStep", "estimate_with_reference", "MAX_OK_INTERVAL_RATIO",
            "parameter_status"]
@@ -78,9 +78,6 @@ __all__ = ["ReferenceRenderer", "ReferenceStep", "estimate_with_reference", "MAX
 Array = NDArray[np.float64]
 _Z95 = 1.959963984540054
 
-#: a converged sigma_s' is reported "ok" only when its 95 % interval spans at most this factor (hi / lo); wider
-#: intervals are "weak": the scene holds sigma_s' too loosely to quote it as a measurement
-MAX_OK_INTERVAL_RATIO: float = 1.5
 #: converged: the refit moved every parameter by less than this fraction of its standard error
 SETTLE_SD_FRACTION: float = 0.5
 #: a rejected step shorter than this many standard errors is a statistical tie with the accepted point: converged
@@ -90,6 +87,9 @@ SIGNAL_SE: float = 5.0
 #: predicted changes of the objective below this (chi-square units of the normalized residuals) are not resolved:
 #: such a step is accepted without the ratio test (Monte Carlo noise along the step dominates it)
 RESOLVED_OBJECTIVE: float = 2.0
+#: the first render's sigma_s' is kept inside this range (per mm): a plain fit at the edge of its search range
+#: (1e-3 or 1e3 /mm, seen on a 5 mm skimmilk pyramid with l_d 18 mm) would cost hours of Monte Carlo walks
+START_SSP_RANGE: tuple[float, float] = (0.02, 50.0)
 #: initial trust-region radius in log parameters (a factor e^0.7 ~ 2) and its bounds
 TRUST_RADIUS_START, TRUST_RADIUS_MIN, TRUST_RADIUS_MAX = 0.7, 0.01, 3.0
 #: the derivative of the correction is averaged over growing neighbourhoods (in patch spacings) until its standard
@@ -155,6 +155,9 @@ class _Correction:
     matrix: Array     # (C, 2, 2) the parameter map B (identity without derivatives)
     objective: Array  # (C,) the reference's robust objective at theta
     additive: NDArray[np.bool_]
+    dq: Array | None = None     # (m, C, 2) the reference's derivatives as rendered (unsmoothed)
+    dq_se: Array | None = None
+    jac: Array | None = None    # (m, C, 2) the corrected model's derivatives at theta: kappa M' B + D
 
 
 def _visible_rows(values: ArrayLike, name: str, patches: Patches, n_ch: int, tail: tuple[int, ...] = ()) -> Array:
@@ -272,25 +275,37 @@ def _adaptive_slope(raw: Array, raw_se: Array, scale: Array, smoothers: list[csr
     return out
 
 
-def _parameter_map(dq: Array, dm: Array, use: NDArray[np.bool_], weight: Array) -> Array:
-    """Per channel the 2 x 2 map B with Q' ~ (kappa M') B over the patches (weighted least squares, shrunk towards
-    the identity by 1e-3 of the normal matrix's scale): the reference responds to the parameters as the fast model
-    responds to B times them (space mapping; Bandler et al. 1994, "Space mapping technique for electromagnetic
-    optimization", IEEE T-MTT 42(12)). The derivative noise enters linearly (no regression dilution)."""
+def _parameter_map(dq: Array, dq_se: Array, dm: Array, use: NDArray[np.bool_], weight: Array) -> Array:
+    """Per channel the 2 x 2 map B with Q' ~ (kappa M') B over the patches: the reference responds to the parameters
+    as the fast model responds to B times them (space mapping; Bandler et al. 1994, "Space mapping technique for
+    electromagnetic optimization", IEEE T-MTT 42(12)). Weighted least squares (the derivative noise enters linearly:
+    no regression dilution), each column then shrunk towards the identity's by the positive-part James-Stein factor
+    1 - tr Var / |B_ls - I|^2 (Var from the derivatives' standard errors, the sandwich of the least squares): a map
+    the Monte Carlo derivatives do not resolve (at 32 spp the column of d/d log sigma_s' moved by ~1 between renders)
+    stays the fast model's own (B = I, the plain defect correction)."""
     n_ch = dq.shape[1]
     out = np.broadcast_to(np.eye(2), (n_ch, 2, 2)).copy()
     for c in range(n_ch):
-        ok = use[:, c] & np.isfinite(weight[:, c]) & np.all(np.isfinite(dm[:, c]), axis=1)
+        ok = use[:, c] & np.isfinite(weight[:, c]) & np.all(np.isfinite(dm[:, c]), axis=1) & np.all(
+            np.isfinite(dq_se[:, c]), axis=1)
         if ok.sum() < 3:
             continue
-        sw = np.sqrt(weight[ok, c])[:, None]
-        x, y = dm[ok, c] * sw, dq[ok, c] * sw
-        xtx = x.T @ x
+        w = weight[ok, c]
+        x, y, se = dm[ok, c], dq[ok, c], dq_se[ok, c]
+        xtx = (x * w[:, None]).T @ x
         lam = 1e-3 * max(float(np.trace(xtx)) / 2.0, 1e-300)
         try:
-            b = np.linalg.solve(xtx + lam * np.eye(2), x.T @ y + lam * np.eye(2))  # (2 in, 2 out): Q' ~ M' b
+            inv = np.linalg.inv(xtx + lam * np.eye(2))
         except np.linalg.LinAlgError:
             continue
+        b = inv @ ((x * w[:, None]).T @ y + lam * np.eye(2))  # (2 in, 2 out): Q' ~ M' b
+        for j in range(2):
+            meat = (x * (w * w * se[:, j] ** 2)[:, None]).T @ x
+            var_tr = float(np.trace(inv @ meat @ inv))
+            dev = b[:, j] - np.eye(2)[:, j]
+            dev2 = float(dev @ dev)
+            shrink = max(0.0, 1.0 - var_tr / dev2) if dev2 > 0 else 0.0
+            b[:, j] = np.eye(2)[:, j] + shrink * dev
         if np.all(np.isfinite(b)):
             out[c] = b  # theta_c = theta_i + B (theta - theta_i), so d(M o P)/d theta = M' B (rows: Q'_row ~ M'_row B)
     return out
@@ -304,9 +319,14 @@ def _build(theta: Array, q: Array, se: Array, dq: Array | None, dq_se: Array | N
     safe_m = np.where(mult, m, 1.0)
     kappa_raw = np.where(mult, q / safe_m, np.nan)
     kvar_raw = np.where(mult, (se / safe_m) ** 2, np.nan)
-    kappa, kappa_var = _weighted_mean(smoother, kappa_raw, kvar_raw, mult)
+    # the smoothed corrections are means over ~n neighbours, but neighbours share them: their errors are correlated,
+    # so each patch keeps the variance of its own render value (not 1/n of it), which is what the refit's sum over
+    # patches sees (with the mean's variance the reference noise entered the intervals ~sqrt(n) = 2.6x too small)
+    kappa, _ = _weighted_mean(smoother, kappa_raw, kvar_raw, mult)
+    kappa_var = np.where(np.isfinite(kvar_raw), kvar_raw, (se / np.where(m > 0, m, np.inf)) ** 2)
     add = good & ~(mult & np.isfinite(kappa))
-    shift, shift_var = _weighted_mean(smoother, q - m, np.maximum(se, 1e-300) ** 2, add)
+    shift, _ = _weighted_mean(smoother, q - m, np.maximum(se, 1e-300) ** 2, add)
+    shift_var = se ** 2
     kappa = np.where(add, 1.0, kappa)
     kappa_var = np.where(add, 0.0, kappa_var)
     shift = np.where(add, np.where(np.isfinite(shift), shift, q - m), 0.0)
@@ -316,7 +336,7 @@ def _build(theta: Array, q: Array, se: Array, dq: Array | None, dq_se: Array | N
     if dq is None or dq_se is None:
         slope = np.zeros(q.shape + (2,))
     else:
-        matrix = _parameter_map(dq, kappa[..., None] * dm, good & np.all(np.isfinite(dq), axis=2), weight)
+        matrix = _parameter_map(dq, dq_se, kappa[..., None] * dm, good & np.all(np.isfinite(dq), axis=2), weight)
         raw = np.where(good[..., None], dq - np.einsum("mck,ckj->mcj", kappa[..., None] * dm, matrix), np.nan)
         # the magnitude the noise is judged against: the derivative as the widest neighbourhood sees it (low noise)
         wide = _adaptive_slope(np.where(good[..., None], dq, np.nan), dq_se, np.zeros_like(dq), slope_smoothers[-1:])
@@ -325,7 +345,9 @@ def _build(theta: Array, q: Array, se: Array, dq: Array | None, dq_se: Array | N
         slope = _adaptive_slope(raw, dq_se, np.nan_to_num(scale, nan=np.inf), slope_smoothers)
     bad = ~good
     kappa[bad], kappa_var[bad], shift[bad], shift_var[bad] = np.nan, np.nan, np.nan, np.nan
-    return _Correction(theta.copy(), q, se, kappa, kappa_var, shift, shift_var, slope, matrix, objective, add & good)
+    jac = None if dq is None else np.einsum("mck,ckj->mcj", kappa[..., None] * dm, matrix) + slope
+    return _Correction(theta.copy(), q, se, kappa, kappa_var, shift, shift_var, slope, matrix, objective, add & good,
+                       dq, dq_se, jac)
 
 
 def _search_box(theta: Array, radius: Array, prev: SingleImageResult, se_floor: NDArray[np.bool_]) -> Array:
@@ -420,6 +442,54 @@ def _widen(ci: Array | None, est: Array, factor: Array) -> Array | None:
     return out
 
 
+def _hull(a: Array, b: Array | None) -> Array:
+    """Elementwise hull of two interval arrays (C, 2) (non-finite ends of ``b`` ignored)."""
+    if b is None:
+        return a
+    bb = np.asarray(b, dtype=np.float64).reshape(-1, 2)
+    out = np.array(a, dtype=np.float64).reshape(-1, 2)
+    out[:, 0] = np.where(np.isfinite(bb[:, 0]), np.minimum(out[:, 0], bb[:, 0]), out[:, 0])
+    out[:, 1] = np.where(np.isfinite(bb[:, 1]), np.maximum(out[:, 1], bb[:, 1]), out[:, 1])
+    return out
+
+
+def _derivative_noise_factor(corr: _Correction, metric: Array) -> Array:
+    """(C, 2) factors >= 1 by which the intervals widen because the reference's derivatives are Monte Carlo
+    estimates: the information the fit used, I_fit = sum w J J^T (J the corrected model's smoothed derivatives), over
+    the unbiased estimate of the reference's own, I = sum w (Q' Q'^T - Cov Q') (errors in variables: the noise of
+    Q' inflates Q' Q'^T by its variance). Where the derivatives are noise, I is ~0 and the factor infinite: the
+    interval spans the parameter's whole range. f_k = sqrt((I^-1)_kk / (I_fit^-1)_kk)."""
+    n_ch = corr.q.shape[1]
+    out = np.ones((n_ch, 2))
+    if corr.dq is None or corr.dq_se is None or corr.jac is None:
+        return out
+    w = 1.0 / metric ** 2
+    for c in range(n_ch):
+        ok = np.isfinite(w[:, c]) & np.all(np.isfinite(corr.dq[:, c]), axis=1) & np.all(
+            np.isfinite(corr.dq_se[:, c]), axis=1) & np.all(np.isfinite(corr.jac[:, c]), axis=1)
+        if ok.sum() < 3:
+            continue
+        wc = w[ok, c]
+        j_fit, j_raw, se = corr.jac[ok, c], corr.dq[ok, c], corr.dq_se[ok, c]
+        i_fit = (j_fit * wc[:, None]).T @ j_fit
+        i_true = (j_raw * wc[:, None]).T @ j_raw - np.diag(np.sum(wc[:, None] * se ** 2, axis=0))
+        try:
+            v_fit = np.diag(np.linalg.pinv(i_fit))
+            ev = np.linalg.eigvalsh(i_true)
+            if ev.min() > 1e-9 * max(ev.max(), 1e-300):
+                v_true = np.diag(np.linalg.inv(i_true))
+            else:  # the correlation is not resolved: each parameter on its own information (its diagonal)
+                d_true, d_fit = np.diag(i_true), np.diag(i_fit)
+                v_true = np.where(d_true > 0, 1.0 / np.where(d_true > 0, d_true, 1.0), np.inf)
+                v_fit = np.where(d_fit > 0, 1.0 / np.where(d_fit > 0, d_fit, 1.0), np.inf)
+        except np.linalg.LinAlgError:
+            continue
+        with np.errstate(all="ignore"):
+            f = np.sqrt(np.where(v_fit > 0, v_true / v_fit, np.inf))
+        out[c] = np.where(np.isfinite(f) & (f > 0), np.maximum(f, 1.0), 1e6)
+    return out
+
+
 def _cover(ci: Array | None, points: Array) -> Array | None:
     """Intervals (C, 2) stretched to contain ``points`` (C, P) (linear values) and their mirror images about the
     interval's centre point set (the distance still to go can be as large as the last step)."""
@@ -431,38 +501,6 @@ def _cover(ci: Array | None, points: Array) -> Array | None:
     c[:, 0] = np.where(c[:, 0] > 0, np.minimum(c[:, 0], lo_p / span), c[:, 0])
     c[:, 1] = np.maximum(c[:, 1], hi_p * span)
     return c
-
-
-def parameter_status(result: SingleImageResult, converged: NDArray[np.bool_] | None, *,
-                     max_ratio: float = MAX_OK_INTERVAL_RATIO, extra_reasons: list[str] | None = None
-                     ) -> tuple[dict[str, list[str]], list[str]]:
-    """Per channel: "ok" | "weak" for sigma_s' and sigma_a (module docstring) and the reasons. ``converged`` (C,)
-    or None (no iteration: only the intervals count); ``extra_reasons`` (per channel, or empty strings) force
-    "weak" with that reason."""
-    ssp_ci = np.asarray(result.sigma_s_prime_ci_per_mm, dtype=np.float64).reshape(-1, 2)
-    n_ch = ssp_ci.shape[0]
-    conv = np.ones(n_ch, bool) if converged is None else np.asarray(converged, bool)
-    forced = extra_reasons or [""] * n_ch
-    ident = list(result.sigma_a_identifiable_per_channel) or [False] * n_ch
-    st_s, st_a, reasons = [], [], []
-    for c in range(n_ch):
-        lo, hi = ssp_ci[c]
-        why: list[str] = []
-        if not conv[c]:
-            why.append("the reference iteration did not converge")
-        if forced[c]:
-            why.append(forced[c])
-        wide = not (lo > 0 and np.isfinite(hi) and hi / lo <= max_ratio)
-        s_ok = not why and not wide
-        a_ok = not why and bool(ident[c])
-        if wide:
-            why.append(f"sigma_s' interval {lo:.3g}-{hi:.3g} /mm spans more than a factor {max_ratio:g}")
-        if not ident[c]:
-            why.append("sigma_a not identifiable (its interval)")
-        st_s.append("ok" if s_ok else "weak")
-        st_a.append("ok" if a_ok else "weak")
-        reasons.append(f"channel {c}: " + ("; ".join(why) if why else "ok"))
-    return {"sigma_s_prime_per_mm": st_s, "sigma_a_per_mm": st_a}, reasons
 
 
 def estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lights: Lights, eta: float,
@@ -531,6 +569,8 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
     model_error = float(fit_kwargs.get("model_error", 0.02))
 
     theta_try = _theta(result)
+    # a plain fit at the edge of its range is no estimate to start from: start inside (the loop's first render)
+    theta_try[:, 0] = np.clip(theta_try[:, 0], np.log(START_SSP_RANGE[0]), np.log(START_SSP_RANGE[1]))
     radius = np.full((n_ch, 2), TRUST_RADIUS_START)
     se_floor = np.ones(n_ch, bool)
     acc: _Correction | None = None
@@ -541,6 +581,7 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
     converged = np.zeros(n_ch, bool)
     with_derivatives = False
     path: list[tuple[Array, Array]] = []  # (accepted point, refit) for the derivative-free widening
+    refits: list[SingleImageResult] = []
     last_step = np.zeros((n_ch, 2))
     for it in range(1, max_iterations + 1):
         q, se, dq, dq_se, render_s = _render(reference, theta_try, eta_f, seed, patches, n_ch)
@@ -586,9 +627,11 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
                                                           TRUST_RADIUS_MIN), radius)
             # channels whose step was rejected keep the accepted point and its correction
             keep = ~accepted
-            for name in ("q", "q_se", "kappa", "kappa_var", "shift", "shift_var", "slope", "additive"):
+            for name in ("q", "q_se", "kappa", "kappa_var", "shift", "shift_var", "slope", "additive", "dq", "dq_se",
+                         "jac"):
                 a_new, a_old = getattr(new, name), getattr(acc, name)
-                a_new[:, keep] = a_old[:, keep]
+                if a_new is not None and a_old is not None:
+                    a_new[:, keep] = a_old[:, keep]
             new.matrix[keep] = acc.matrix[keep]
             new.theta[keep] = acc.theta[keep]
             new.objective[keep] = acc.objective[keep]
@@ -605,6 +648,7 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
         step = theta_fit - acc.theta
         last_step = step
         path.append((acc.theta.copy(), theta_fit.copy()))
+        refits.append(fit)
         acc_fit = fit
         se_fit = _standard_errors(fit, theta_fit)
         settled = _settled(step, se_fit) & accepted
@@ -654,14 +698,25 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
         propagation = {"method": "no reference derivatives: refit intervals x max(1, 1/|s|), s the secant slope of "
                                  "F(p) - p along the path (x2 where not measured)",
                        "factor": factor.tolist(), "slope_known": known.tolist()}
+    else:
+        factor = _derivative_noise_factor(acc, metric)
+        # (clipped to the search ranges: 1e-3-1e3 /mm for sigma_s', 0-50 /mm for sigma_a)
+        ssp_ci = np.clip(_widen(ssp_ci, np.exp(theta_fin[:, 0]), factor[:, 0]), 1e-3, 1e3)
+        sa_ci = np.clip(_widen(sa_ci, np.exp(theta_fin[:, 1]), factor[:, 1]), 0.0, 50.0)
+        propagation["derivative_noise_factor"] = factor.tolist()
     if not np.all(converged):
         pts_s = np.exp(np.stack([acc.theta[:, 0], theta_fin[:, 0]], axis=1))
         pts_a = np.exp(np.stack([acc.theta[:, 1], theta_fin[:, 1]], axis=1))
         nc = ~converged
         ssp_w, sa_w = _cover(ssp_ci, pts_s), _cover(sa_ci, pts_a)
+        # and every refit's interval along the path: where the iteration has not settled, any of them may hold it
+        for f in refits:
+            ssp_w = _hull(ssp_w, f.sigma_s_prime_ci_per_mm)
+            sa_w = _hull(sa_w, f.sigma_a_ci_per_mm)
         ssp_ci = np.where(nc[:, None], ssp_w, ssp_ci)
         sa_ci = np.where(nc[:, None], sa_w, sa_ci)
-        propagation["not_converged"] = "intervals stretched over the last step and as much again"
+        propagation["not_converged"] = ("intervals: the hull of every refit's along the path, stretched over the last "
+                                        "step and as much again")
     propagation["refit_sigma_s_prime_ci_per_mm"] = np.asarray(result.sigma_s_prime_ci_per_mm).tolist()
     propagation["refit_sigma_a_ci_per_mm"] = np.asarray(result.sigma_a_ci_per_mm).tolist()
     ratio = float(fit_kwargs.get("identifiable_ratio", 10.0))

@@ -305,11 +305,23 @@ def sample_at_points(img: np.ndarray, var: np.ndarray, valid: np.ndarray, camera
     window centres), and the standard deviation of that mean. A symmetric window keeps the sampling
     centred on the point, so the radiance gradient across a patch does not bias the value (averaging all
     pixels of a face does: its pixel centroid is not the face centre). NaN where any pixel of the window
-    is invalid (background, saturated, off-frame)."""
+    is invalid (background, saturated, off-frame).
+
+    The variance of the interpolated mean counts the overlap of neighbouring windows: for independent pixel noise
+    Var = (local variance of a window mean) x G, G = sum_ij w_i w_j rho_ij over the four bilinear weights, rho the
+    fraction of pixels two windows share ((W - 1)/W side by side, ((W - 1)/W)^2 diagonally): G = sum w_i^2 (1/4
+    at the centre of four pixels) for W = 1, -> 1 for wide windows. (Interpolating the variances linearly, as
+    before, overstated the standard error of a bilinear sample by up to 2x.)"""
     from scipy.ndimage import map_coordinates, uniform_filter
 
     uv, z = camera.project(points_mm)
     n = window_px * window_px
+    fx = uv[:, 0] - np.floor(uv[:, 0])
+    fy = uv[:, 1] - np.floor(uv[:, 1])
+    w00, w01, w10, w11 = (1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy
+    r_adj = (window_px - 1) / window_px
+    overlap = (w00 ** 2 + w01 ** 2 + w10 ** 2 + w11 ** 2 + 2 * r_adj * (w00 * w01 + w10 * w11 + w00 * w10 + w01 * w11)
+               + 2 * r_adj ** 2 * (w00 * w11 + w01 * w10))
     obs = np.full((len(points_mm), img.shape[2]), np.nan)
     sigma = np.full_like(obs, np.nan)
     for c in range(img.shape[2]):
@@ -322,7 +334,7 @@ def sample_at_points(img: np.ndarray, var: np.ndarray, valid: np.ndarray, camera
         vmean[~full] = np.nan
         coords = [uv[:, 1], uv[:, 0]]
         obs[:, c] = map_coordinates(mean, coords, order=1, cval=np.nan)
-        sigma[:, c] = np.sqrt(map_coordinates(vmean, coords, order=1, cval=np.nan))
+        sigma[:, c] = np.sqrt(map_coordinates(vmean, coords, order=1, cval=np.nan) * overlap)
     bad = ~(z > 0)
     obs[bad] = np.nan
     sigma[bad] = np.nan

@@ -1087,6 +1087,12 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
         out["sigma_a_identifiable"] = list(res.sigma_a_identifiable_per_channel)
         out["identifiability_reason"] = res.identifiability_reason
     out["model_bias"] = res.extra.get("model_bias")
+    if res:
+        out["status"] = res.extra.get("status")
+        out["status_reasons"] = res.extra.get("status_reasons")
+    else:  # a failed estimate is no measurement of anything
+        out["status"] = {"sigma_s_prime_per_mm": ["unknown"] * n_ch, "sigma_a_per_mm": ["unknown"] * n_ch}
+        out["status_reasons"] = [f"channel {c}: the estimate failed: {res.message}" for c in range(n_ch)]
     if reference_out is not None:
         out["reference"] = reference_out
         out["converged"] = reference_out["converged"]
@@ -1177,9 +1183,16 @@ def format_table(result: dict[str, Any]) -> str:
         lines.append("  " + f"{label:<26}" + "".join(cells))
     ident = result.get("sigma_a_identifiable", [])
     lines.append("  " + f"{'sigma_a identifiable':<26}" + "".join(f"{('yes' if i else 'NO'):<28}" for i in ident))
+    status = result.get("status") or {}
+    for key, label in (("sigma_s_prime_per_mm", "status sigma_s'"), ("sigma_a_per_mm", "status sigma_a")):
+        if key in status:
+            lines.append("  " + f"{label:<26}" + "".join(f"{v.upper() if v != 'ok' else 'ok':<28}" for v in status[key]))
     lines.append("  (95 % intervals in parentheses; sigma_a: profile likelihood, lower bound 0 when one-sided)")
     if not all(ident):
         lines.append(f"  {result.get('identifiability_reason', '')}")
+    if any(v != "ok" for vals in status.values() for v in vals):
+        lines.append("  WEAK = not a measurement to quote without its interval: " +
+                     "; ".join(result.get("status_reasons") or []))
     lines += _reference_lines(result)
     notes = result.get("diagnostics", {}).get("notes", [])
     for n in notes:

@@ -93,6 +93,7 @@ from .geometry import (DirectionalLights, EnvironmentMap, Lights, Patches, Point
                        patches_from_mesh, sample_image_at_patches)
 from .models import BIAS_RADII_MFP, MODELS_ALL, _binned_profile, check_model, model_bias
 from .results import SingleImageDiagnostics, SingleImageResult, sigma_a_verdict
+from .validity import MAX_OK_INTERVAL_RATIO, flat_model_reasons, parameter_status
 from .estimate import MAX_BINS
 
 __all__ = [
@@ -122,4 +123,7 @@ __all__ = [
     "MAX_BINS",
     "Lights",
     "sigma_a_verdict",
+    "parameter_status",
+    "flat_model_reasons",
+    "MAX_OK_INTERVAL_RATIO",
 ]

@@ -13,7 +13,8 @@ from ..fresnel import fresnel_transmittance
 from .far_field import (EXACT_PAIR_BUDGET, EXACT_PAIR_BUDGET_BINNED, FAR_FIELD_MODES, FAR_FIELD_THETA,
                         FAR_FIELD_THETA_BINNED, _NODE_RATIO, _cubic_log_basis, _Geometry, _hat_basis, _log_grid,
                         quantization_weights)
-from .fit import _Z95, _ChannelFit, _fit_channel, _Problem, _reduce, _tikhonov
+from .fit import _LOG_SSP_BOUNDS, _Z95, _ChannelFit, _fit_channel, _Problem, _reduce, _tikhonov
+from .validity import flat_model_reasons, parameter_status
 from .weights import fit_direct_channel
 from .geometry import Lights, Patches, patch_irradiance
 from .models import (_binned_profile, _cutoff, _derived_intervals, _disk_batch, _exit_normalization,
@@ -456,6 +457,9 @@ def _estimate(observed_radiance: ArrayLike, patches: Patches, lights: Lights, et
                      if np.isfinite(f.cov).all() and f.cov[0, 0] * f.cov[1, 1] > 0 else 0.0 for f in fits])
     sd = np.minimum(sd, 300.0)  # (exp overflow guard: an SD of 300 in a log parameter is "unbounded")
     ssp_ci = np.stack([ssp * np.exp(-_Z95 * sd[:, 0]), ssp * np.exp(_Z95 * sd[:, 0])], axis=1)
+    # a sigma_s' at the edge of the search range is no optimum: the data did not bound it (its interval: the range)
+    at_bound = (theta_hat[:, 0] <= _LOG_SSP_BOUNDS[0] + 1e-3) | (theta_hat[:, 0] >= _LOG_SSP_BOUNDS[1] - 1e-3)
+    ssp_ci[at_bound] = np.exp(np.array(_LOG_SSP_BOUNDS))
     sa_ci_jac = np.stack([sa * np.exp(-_Z95 * sd[:, 1]), sa * np.exp(_Z95 * sd[:, 1])], axis=1)
     rd_ci, ld_ci = _derived_intervals(theta_hat, [f.cov for f in fits], eta_f, model, fdr)
     if profile_likelihood:
@@ -506,7 +510,11 @@ def _estimate(observed_radiance: ArrayLike, patches: Patches, lights: Lights, et
                              "model_error": float(model_error),
                              "robust": "huber" if (robust and method == "direct") else None,
                              "downweighted_fraction": downweighted.tolist()}}
-    return SingleImageResult(
+    flat = flat_model_reasons(patches, valid, ld, ssp / (ssp + sa), eta_f) if search_box_per_mm is None else [""] * n_ch
+    forced = [("; ".join(x for x in (f"sigma_s' at the edge of its search range ({np.exp(_LOG_SSP_BOUNDS[0]):g}-"
+                                     f"{np.exp(_LOG_SSP_BOUNDS[1]):g} /mm): not bounded by the data"
+                                     if at_bound[c] else "", flat[c]) if x)) for c in range(n_ch)]
+    out = SingleImageResult(
         True, "ok" if not notes else "; ".join(notes), method, model, eta_f,
         sigma_s_prime_per_mm=ssp, sigma_a_per_mm=sa, R_d=np.asarray(rd), l_d_mm=np.asarray(ld), D_mm=np.asarray(D),
         sigma_s_prime_ci_per_mm=ssp_ci, sigma_a_ci_per_mm=sa_ci, sigma_a_ci_jacobian_per_mm=sa_ci_jac,
@@ -514,3 +522,6 @@ def _estimate(observed_radiance: ArrayLike, patches: Patches, lights: Lights, et
         sigma_a_identifiable=bool(all(ident)), sigma_a_identifiable_per_channel=tuple(ident),
         identifiability_reason="; ".join(reasons), profile_bins_mm=bins, profile_values=prof_vals,
         diagnostics=diag, extra=extra)
+    status, why = parameter_status(out, None, extra_reasons=forced)
+    out.extra.update(status=status, status_reasons=why, flat_model_reasons=flat)
+    return out

@@ -19,7 +19,8 @@ import numpy.typing as npt
 
 from estimation.single_image import EnvironmentMap, PointLights
 
-__all__ = ["GradientPattern", "uniform_environment", "KernelLights", "kernel_lights", "PATTERN_COEFFS"]
+__all__ = ["GradientPattern", "uniform_environment", "KernelLights", "kernel_lights", "PATTERN_COEFFS",
+           "env_nee_table", "ENV_NEE_FACTOR"]
 
 FloatArray = npt.NDArray[np.float64]
 
@@ -57,6 +58,10 @@ class KernelLights(NamedTuple):
     has_map: bool
     affine: FloatArray         # (4,): radiance a + b.w
     has_affine: bool
+    # next-event estimation of the map's bright pixels (:func:`env_nee_table`): (n, 5) rows of [CDF, row, column,
+    # radiance, solid angle] ((0, 5) when none), and the map without those pixels (what escaping paths look up)
+    env_nee: FloatArray
+    env_rest: FloatArray
 
 
 def _per_channel(value: Any, n_channels: int, what: str) -> FloatArray:
@@ -69,6 +74,32 @@ def _per_channel(value: Any, n_channels: int, what: str) -> FloatArray:
     if v.size != n_channels:
         raise ValueError(f"{what} has {v.size} channels, the media {n_channels}")
     return v
+
+
+#: map pixels brighter than this many times the map's mean radiance (4 pi average) are sampled by next-event
+#: estimation (a sun, a window, a studio light) instead of being found by escaping paths
+ENV_NEE_FACTOR: float = 4.0
+
+
+def env_nee_table(env_map: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """The bright pixels of a lat-long map (module docstring of :mod:`.walk`, "environment next-event estimation")
+    as (n, 5) rows [CDF by power, row, column, radiance, solid angle], and the map with them zeroed."""
+    h, w = env_map.shape
+    theta = np.pi * np.arange(h + 1) / h
+    omega = ((np.cos(theta[:-1]) - np.cos(theta[1:])) * (2.0 * np.pi / w))[:, None] * np.ones((1, w))
+    total = float(np.sum(env_map * omega))
+    if not total > 0:
+        return np.zeros((0, 5)), env_map
+    bright = env_map > ENV_NEE_FACTOR * total / (4.0 * np.pi)
+    if not bright.any():
+        return np.zeros((0, 5)), env_map
+    rows, cols = np.nonzero(bright)
+    power = env_map[rows, cols] * omega[rows, cols]
+    cdf = np.cumsum(power) / power.sum()
+    cdf[-1] = 1.0
+    table = np.stack([cdf, rows.astype(float), cols.astype(float), env_map[rows, cols], omega[rows, cols]], axis=1)
+    rest = np.where(bright, 0.0, env_map)
+    return np.ascontiguousarray(table), np.ascontiguousarray(rest)
 
 
 def kernel_lights(lights: Any, n_channels: int) -> list[KernelLights]:
@@ -122,6 +153,7 @@ def kernel_lights(lights: Any, n_channels: int) -> list[KernelLights]:
         if len(cdf):
             cdf[-1] = 1.0 if tot > 0 else 0.0
         m = np.ascontiguousarray(env[:, :, c]) if env is not None else np.zeros((1, 1))
+        table, rest = env_nee_table(m) if env is not None else (np.zeros((0, 5)), m)
         out.append(KernelLights(np.ascontiguousarray(P), ic, cdf, m, env is not None,
-                                np.ascontiguousarray(aff[c]), has_aff))
+                                np.ascontiguousarray(aff[c]), has_aff, table, rest))
     return out

@@ -43,7 +43,7 @@ from .lights import kernel_lights
 from .media import Medium
 from .optics import fresnel_r, reflect, refract
 from .rng import stream, uniform
-from .shapes import MESH, STACK_SIZE, Shape, nearest_hit
+from .shapes import MESH, SPHERE, STACK_SIZE, Shape, nearest_hit
 from .walk import EXITED, TRUNCATED, walk
 
 __all__ = ["MCImage", "render"]
@@ -94,12 +94,15 @@ def env_radiance(dx, dy, dz, env_map, has_map, aff, has_aff):
 def _trace_path(kind, prm, nbox, nidx, tris, eps_t, nudge, convex, stack, inside, x, y, z, dx, dy, dz, beta, state,
                 sigma_t, albedo, g, eta, rr_weight, rr_survival, max_collisions,
                 light_pos, light_int, light_cdf, sample_one, n_scan, nee_tau,
-                env_map, has_map, aff, has_aff, max_bounces, want_d):
+                env_map, has_map, aff, has_aff, max_bounces, want_d, env_rest, env_nee, far_mm):
     """Radiance estimate of one camera path with throughput ``beta`` that starts just inside the medium
     (``inside``) or just outside it, travelling along d. Alternates walks inside and ray segments outside
     (Fresnel sampled at every hit from outside) until the path escapes, is absorbed or hits ``max_bounces``.
     Returns (value, d value / d log sigma_s, d value / d log sigma_a, state, collisions, truncated); the two
-    derivatives (score-function estimates, :mod:`.walk`) are 0 unless ``want_d``."""
+    derivatives (score-function estimates, :mod:`.walk`) are 0 unless ``want_d``. With environment next-event
+    estimation (``env_nee`` rows), a ray that leaves the medium straight from its last scattering vertex and escapes
+    at once looks up ``env_rest`` (the map without the pixels the walk's connections sample, :mod:`.walk`); any other
+    escaping ray (an internal reflection since the vertex, a reflection off the outside) the whole ``env_map``."""
     value = 0.0
     v_ds = 0.0
     v_da = 0.0
@@ -111,12 +114,14 @@ def _trace_path(kind, prm, nbox, nidx, tris, eps_t, nudge, convex, stack, inside
     len_in = 0.0  # path length inside the medium so far
     truncated = False
     just_exited = False
+    straight_exit = False
     for _ in range(2 * max_bounces):
         if inside:
-            status, x, y, z, dx, dy, dz, w, nee, state, nc, seg_len, nee_ds, nee_da = walk(
+            status, x, y, z, dx, dy, dz, w, nee, state, nc, seg_len, nee_ds, nee_da, straight = walk(
                 kind, prm, nbox, nidx, tris, eps_t, nudge, stack, x, y, z, dx, dy, dz, state,
                 sigma_t, albedo, g, eta, rr_weight, rr_survival, max_collisions,
-                light_pos, light_int, light_cdf, sample_one, n_scan, nee_tau, want_d, n_coll, len_in)
+                light_pos, light_int, light_cdf, sample_one, n_scan, nee_tau, want_d, n_coll, len_in,
+                env_nee, env_map.shape[0], env_map.shape[1], far_mm)
             n_coll += nc
             len_in += seg_len
             value += beta * nee
@@ -129,16 +134,18 @@ def _trace_path(kind, prm, nbox, nidx, tris, eps_t, nudge, convex, stack, inside
             beta *= w * e2
             inside = False
             just_exited = True
+            straight_exit = straight
             continue
         if convex and just_exited:
             t = math.inf  # a ray leaving a convex object never meets it again
             nx = ny = nz = 0.0
         else:
             t, nx, ny, nz = nearest_hit(kind, prm, nbox, nidx, tris, x, y, z, dx, dy, dz, eps_t, stack)
+        direct = just_exited and straight_exit
         just_exited = False
         if t == math.inf:
             if has_env:
-                c_env = beta * env_radiance(dx, dy, dz, env_map, has_map, aff, has_aff)
+                c_env = beta * env_radiance(dx, dy, dz, env_rest if direct else env_map, has_map, aff, has_aff)
                 value += c_env
                 if want_d:
                     v_ds += c_env * (n_coll - sigma_s * len_in)
@@ -168,7 +175,7 @@ def _trace_path(kind, prm, nbox, nidx, tris, eps_t, nudge, convex, stack, inside
 def _render_kernel(origins, dirs, spp, seed, channel, kind, prm, nbox, nidx, tris, eps_t, nudge, convex,
                    sigma_t, albedo, g, eta, rr_weight, rr_survival, max_collisions,
                    light_pos, light_int, light_cdf, sample_one, n_scan, nee_tau,
-                   env_map, has_map, aff, has_aff, include_specular, max_bounces, want_d,
+                   env_map, has_map, aff, has_aff, include_specular, max_bounces, want_d, env_rest, env_nee, far_mm,
                    out_mean, out_se, out_hit, out_coll, out_trunc, out_d, out_d_se):
     n_pix = origins.shape[0]
     for p in prange(n_pix):
@@ -216,7 +223,7 @@ def _render_kernel(origins, dirs, spp, seed, channel, kind, prm, nbox, nidx, tri
                         hx - nudge * nx, hy - nudge * ny, hz - nudge * nz, tx, ty, tz, beta0, state,
                         sigma_t, albedo, g, eta, rr_weight, rr_survival, max_collisions,
                         light_pos, light_int, light_cdf, sample_one, n_scan, nee_tau,
-                        env_map, has_map, aff, has_aff, max_bounces, want_d)
+                        env_map, has_map, aff, has_aff, max_bounces, want_d, env_rest, env_nee, far_mm)
                     coll += nc
                     if tr:
                         trunc += 1
@@ -226,7 +233,7 @@ def _render_kernel(origins, dirs, spp, seed, channel, kind, prm, nbox, nidx, tri
                         hx + nudge * nx, hy + nudge * ny, hz + nudge * nz, rx, ry, rz, fr, state,
                         sigma_t, albedo, g, eta, rr_weight, rr_survival, max_collisions,
                         light_pos, light_int, light_cdf, sample_one, n_scan, nee_tau,
-                        env_map, has_map, aff, has_aff, max_bounces, want_d)
+                        env_map, has_map, aff, has_aff, max_bounces, want_d, env_rest, env_nee, far_mm)
                     val += v2
                     val_s += v2_s
                     val_a += v2_a
@@ -266,7 +273,8 @@ def _media_list(media: Medium | Sequence[Medium]) -> list[Medium]:
 def render(shape: Shape, media: Medium | Sequence[Medium], camera: Any, lights: Any, *, spp: int = 64,
            seed: int = 0, include_specular: bool = False, nee_tau: float = 1.0, rr_weight: float = 0.01,
            rr_survival: float = 0.1, max_collisions: int = 1_000_000, max_bounces: int = 64,
-           n_scan: int = 32, max_sampled_lights: int = 8, derivatives: bool = False) -> MCImage:
+           n_scan: int = 32, max_sampled_lights: int = 8, derivatives: bool = False, env_nee: bool = True
+           ) -> MCImage:
     """Render ``shape`` filled with ``media`` (one :class:`Medium` per colour channel, all with the same eta) as
     seen by ``camera`` (anything with ``width_px``, ``height_px``, ``pixel_rays()``: PinholeCamera,
     OrthographicCamera) under ``lights`` (see :mod:`.lights`).
@@ -275,7 +283,9 @@ def render(shape: Shape, media: Medium | Sequence[Medium], camera: Any, lights: 
     light is drawn per collision with probability proportional to its intensity. ``nee_tau``, ``rr_weight``,
     ``rr_survival``: variance-only knobs (see :mod:`.walk`). ``derivatives``: also estimate, from the same paths,
     the derivatives of the radiance with respect to log sigma_s and log sigma_a of each channel's medium
-    (``MCImage.d_log_sigma``; perturbation Monte Carlo, :mod:`.walk`; point-light connections cost twice). Raises ValueError for a point light inside the
+    (``MCImage.d_log_sigma``; perturbation Monte Carlo, :mod:`.walk`; point-light connections cost twice).
+    ``env_nee``: sample an environment map's bright pixels by next-event estimation (:mod:`.walk`; not for
+    refracting non-convex meshes, whose connections are not supported: there escaping paths find them). Raises ValueError for a point light inside the
     object, for media with different eta, or for point lights with a non-convex mesh and eta != 1 (not supported:
     refracted connections are found face by face, which needs every face that faces the light to see it).
     """
@@ -302,6 +312,14 @@ def render(shape: Shape, media: Medium | Sequence[Medium], camera: Any, lights: 
     n = len(o)
     rad = np.zeros((n, len(ms)))
     se = np.zeros((n, len(ms)))
+    # environment next-event estimation (:mod:`.walk`): needs the point-light connection, which a refracting
+    # non-convex mesh does not have
+    # (nor the analytic sphere's, whose stationary-point search is not made for a light 1e6 radii away: measured 0.08
+    # of the path-traced image; a tessellated sphere works)
+    env_nee = bool(env_nee) and not (geo.kind == MESH and abs(eta - 1.0) >= 1e-12 and not geo.convex) and not (
+        geo.kind == SPHERE and abs(eta - 1.0) >= 1e-12)
+    no_nee = np.zeros((0, 5))
+    far_mm = 1e6 * float(geo.scale_mm)
     want_d = bool(derivatives)
     d_all = np.zeros((n, len(ms), 2)) if want_d else None
     d_se_all = np.zeros((n, len(ms), 2)) if want_d else None
@@ -312,6 +330,7 @@ def render(shape: Shape, media: Medium | Sequence[Medium], camera: Any, lights: 
     tot_trunc = 0
     t0 = time.perf_counter()
     for c, (m, L) in enumerate(zip(ms, kl)):
+        env_rest = L.env_rest
         mean_c = np.zeros(n)
         se_c = np.zeros(n)
         d_c = np.zeros((n if want_d else 1, 2))
@@ -322,7 +341,8 @@ def render(shape: Shape, media: Medium | Sequence[Medium], camera: Any, lights: 
                        float(rr_weight), float(rr_survival), int(max_collisions),
                        L.positions_mm, L.intensity, L.cdf, sample_one, int(n_scan), float(nee_tau),
                        L.env_map, L.has_map, L.affine, L.has_affine, bool(include_specular), int(max_bounces),
-                       want_d, mean_c, se_c, hit, coll, trunc, d_c, d_se_c)
+                       want_d, env_rest if env_nee else L.env_map, L.env_nee if env_nee else no_nee, far_mm,
+                       mean_c, se_c, hit, coll, trunc, d_c, d_se_c)
         rad[:, c] = mean_c
         se[:, c] = se_c
         if want_d:

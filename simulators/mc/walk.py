@@ -15,6 +15,18 @@ connection is done with probability q = min(1, exp(-sigma_t l_min) / nee_tau) an
 bound on its length inside the medium, so exp(-sigma_t l_min) bounds its transmittance): deep or shadowed
 vertices, whose contribution is exponentially small, are skipped most of the time without bias.
 
+Environment next-event estimation (``env_nee``, a table from :func:`.lights.env_nee_table`): a map's bright
+pixels (a sun lobe) are found by escaping walks only when a walk happens to leave towards them, so a 3.5 deg sun
+made 1024-spp frames 24-36 % noisy per pixel. Instead, at every collision one direction w is drawn from those
+pixels (pixel by power, then uniformly in solid angle within it: pdf = P_pixel / Omega_pixel) and connected like
+a point light far away in direction w (``far_mm`` from the origin, intensity L / pdf x far^2, so its irradiance is
+L / pdf): the refracted connections of :mod:`.nee`, roulette, occlusion and derivatives included. Escaping paths
+look those pixels up as 0 (the renderer passes the map without them) when they left straight from their last
+scattering vertex — exactly the paths the connection covers; a path whose last stretch inside had an internal
+(Fresnel or total) reflection, or that never scattered, still finds them (measured without this split: a box at
+eta 1.3 under a sun 3.4 % dark, 2.8 standard errors), so nothing is counted twice or lost. Pharr, Jakob,
+Humphreys PBR 3rd ed. sec. 14.2.4 (infinite area lights sampled by a piecewise-constant distribution).
+
 Derivatives (``want_d``): the same paths also estimate the derivatives of every contribution with respect to
 log sigma_s and log sigma_a (perturbation Monte Carlo, the likelihood-ratio / score-function estimator; Hayakawa
 et al. 2001, "Perturbation Monte Carlo methods to solve inverse photon migration problems in heterogeneous
@@ -33,6 +45,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 from numba import njit
 
 from .nee import point_light_nee
@@ -53,15 +66,17 @@ _NEE_FD_REL = 1e-6
 @njit(cache=True, error_model="numpy")
 def walk(kind, prm, nbox, nidx, tris, eps_t, nudge, stack, x, y, z, dx, dy, dz, state,
          sigma_t, albedo, g, eta, rr_weight, rr_survival, max_collisions,
-         light_pos, light_int, light_cdf, sample_one, n_scan, nee_tau, want_d, n0, len0):
+         light_pos, light_int, light_cdf, sample_one, n_scan, nee_tau, want_d, n0, len0,
+         env_nee, env_h, env_w, far_mm):
     """Walk from (x, y, z) inside along unit (dx, dy, dz) with weight 1.
 
-    Returns (status, x, y, z, dx, dy, dz, weight, nee, state, collisions, length, nee_ds, nee_da): at EXITED the
+    Returns (status, x, y, z, dx, dy, dz, weight, nee, state, collisions, length, nee_ds, nee_da, straight): at EXITED the
     position is just outside the boundary and the direction the refracted outgoing one; ``nee`` is the sum of
     next-event contributions (0 without lights); ``length`` the distance travelled inside (including the last
     flight to the boundary). With ``want_d``, ``nee_ds`` and ``nee_da`` are the derivatives of ``nee`` with
     respect to log sigma_s and log sigma_a (module docstring), for a path that had ``n0`` scattering events and
-    length ``len0`` inside before this walk (non-convex bodies are entered several times); else 0.
+    length ``len0`` inside before this walk (non-convex bodies are entered several times); else 0. ``straight``: the
+    path has scattered and left straight from its last scattering vertex (no internal reflection since).
     """
     w = 1.0
     nee = 0.0
@@ -70,10 +85,15 @@ def walk(kind, prm, nbox, nidx, tris, eps_t, nudge, stack, x, y, z, dx, dy, dz, 
     n_coll = 0
     length = 0.0
     do_nee = light_pos.shape[0] > 0
+    do_env = env_nee.shape[0] > 0
+    one_pos = np.zeros((1, 3))
+    one_int = np.ones(1)
+    one_cdf = np.ones(1)
     inv_eta = 1.0 / eta
     sigma_s = sigma_t * albedo
     sigma_a = sigma_t - sigma_s
     st_fd = sigma_t * (1.0 + _NEE_FD_REL)
+    reflected = False  # an internal reflection since the last collision
     while True:
         t_b, nx, ny, nz = nearest_hit(kind, prm, nbox, nidx, tris, x, y, z, dx, dy, dz, eps_t, stack)
         state, u = uniform(state)
@@ -84,6 +104,7 @@ def walk(kind, prm, nbox, nidx, tris, eps_t, nudge, stack, x, y, z, dx, dy, dz, 
             z += s * dz
             length += s
             n_coll += 1
+            reflected = False
             if do_nee:
                 state, u_rr = uniform(state)
                 # every connection's roulette probability is <= exp(-sigma_t d_surf) / nee_tau: reject cheaply
@@ -102,15 +123,53 @@ def walk(kind, prm, nbox, nidx, tris, eps_t, nudge, stack, x, y, z, dx, dy, dz, 
                         tot_len = len0 + length
                         nee_ds += c * (n0 + n_coll - sigma_s * tot_len) + sigma_s * dconn
                         nee_da += -c * sigma_a * tot_len + sigma_a * dconn
+            if do_env:
+                state, u_rr = uniform(state)
+                if u_rr * nee_tau < math.exp(-sigma_t * surface_distance(kind, prm, x, y, z)):
+                    state, u_p = uniform(state)
+                    state, u_t = uniform(state)
+                    state, u_f = uniform(state)
+                    lo, hi = 0, env_nee.shape[0] - 1
+                    while lo < hi:
+                        mid = (lo + hi) // 2
+                        if env_nee[mid, 0] < u_p:
+                            lo = mid + 1
+                        else:
+                            hi = mid
+                    pmf = env_nee[lo, 0] - (env_nee[lo - 1, 0] if lo > 0 else 0.0)
+                    if pmf > 0.0:
+                        row, col = env_nee[lo, 1], env_nee[lo, 2]
+                        c0 = math.cos(math.pi * row / env_h)
+                        c1 = math.cos(math.pi * (row + 1.0) / env_h)
+                        ct_l = c0 + u_t * (c1 - c0)
+                        st_l = math.sqrt(max(0.0, 1.0 - ct_l * ct_l))
+                        phi = 2.0 * math.pi * (col + u_f) / env_w
+                        one_pos[0, 0] = far_mm * st_l * math.cos(phi)
+                        one_pos[0, 1] = far_mm * st_l * math.sin(phi)
+                        one_pos[0, 2] = far_mm * ct_l
+                        one_int[0] = env_nee[lo, 3] * env_nee[lo, 4] / pmf * far_mm * far_mm
+                        p_env = point_light_nee(kind, prm, nbox, nidx, tris, eps_t, stack, x, y, z, dx, dy, dz,
+                                                sigma_t, g, eta, one_pos, one_int, one_cdf, False, n_scan, nee_tau,
+                                                u_rr, 0.0, sigma_t)
+                        c = w * albedo * p_env
+                        nee += c
+                        if want_d and p_env != 0.0:
+                            p_fd = point_light_nee(kind, prm, nbox, nidx, tris, eps_t, stack, x, y, z, dx, dy, dz,
+                                                   sigma_t, g, eta, one_pos, one_int, one_cdf, False, n_scan,
+                                                   nee_tau, u_rr, 0.0, st_fd)
+                            dconn = w * albedo * (p_fd - p_env) / (st_fd - sigma_t)
+                            tot_len = len0 + length
+                            nee_ds += c * (n0 + n_coll - sigma_s * tot_len) + sigma_s * dconn
+                            nee_da += -c * sigma_a * tot_len + sigma_a * dconn
             w *= albedo
             if w < rr_weight:
                 state, u = uniform(state)
                 if u < rr_survival:
                     w /= rr_survival
                 else:
-                    return TERMINATED, x, y, z, dx, dy, dz, 0.0, nee, state, n_coll, length, nee_ds, nee_da
+                    return TERMINATED, x, y, z, dx, dy, dz, 0.0, nee, state, n_coll, length, nee_ds, nee_da, False
             if n_coll >= max_collisions:
-                return TRUNCATED, x, y, z, dx, dy, dz, 0.0, nee, state, n_coll, length, nee_ds, nee_da
+                return TRUNCATED, x, y, z, dx, dy, dz, 0.0, nee, state, n_coll, length, nee_ds, nee_da, False
             state, u = uniform(state)
             ct = sample_hg_cos(g, u)
             state, u = uniform(state)
@@ -128,6 +187,7 @@ def walk(kind, prm, nbox, nidx, tris, eps_t, nudge, stack, x, y, z, dx, dy, dz, 
                 x -= nudge * nx
                 y -= nudge * ny
                 z -= nudge * nz
+                reflected = True
             else:
                 ok, tx, ty, tz = refract(dx, dy, dz, -nx, -ny, -nz, inv_eta)
                 if not ok:  # numerically at the critical angle: reflect
@@ -135,8 +195,10 @@ def walk(kind, prm, nbox, nidx, tris, eps_t, nudge, stack, x, y, z, dx, dy, dz, 
                     x -= nudge * nx
                     y -= nudge * ny
                     z -= nudge * nz
+                    reflected = True
                     continue
                 x += nudge * nx
                 y += nudge * ny
                 z += nudge * nz
-                return EXITED, x, y, z, tx, ty, tz, w, nee, state, n_coll, length, nee_ds, nee_da
+                return (EXITED, x, y, z, tx, ty, tz, w, nee, state, n_coll, length, nee_ds, nee_da,
+                        (n0 + n_coll) > 0 and not reflected)
