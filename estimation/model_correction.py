@@ -17,11 +17,16 @@ The estimate is the maximum-likelihood fit of the *reference* Q(theta) to the ob
 
 1. fit the fast model: theta_0 (the plain estimate);
 2. render the reference at the current point theta_i: Q, its standard error and, when the reference provides them,
-   its derivatives Q' = dQ/dtheta from the same paths (:func:`simulators.mc.render` with ``derivatives=True``:
-   perturbation Monte Carlo); evaluate the fast model M and its derivatives M' there;
+   its derivatives Q' = dQ/dtheta from the same paths (:func:`simulators.mc.render` with ``derivatives=True``: the
+   score function for log sigma_a, a paired forward difference over the same paths for log sigma_s', whose score
+   is too noisy for long walks); evaluate the fast model M and its derivatives M' there;
 3. build the corrected model, exact to first order at theta_i:
 
-       F_i(theta) = kappa M(theta) + a + D phi(theta - theta_i),   D = Q' - kappa M',
+       F_i(theta) = kappa M(theta_i + B (theta - theta_i)) + a + D phi(theta - theta_i),   D = Q' - kappa M' B,
+
+   B a 2 x 2 parameter map learnt from Q' ~ kappa M' B over the patches (space mapping, :func:`_parameter_map`:
+   the scene responds to the parameters as the fast model does to B times them — half as much to sigma_a on a
+   small body —; shrunk towards the identity by its Monte Carlo standard error),
 
    per patch: multiplicative (kappa = Q / M, a = 0) where the render has signal (Q above 5 standard errors and M > 0),
    additive (kappa = 1, a = Q - M) where it has not — a patch the light does not reach, whose render is noise around
@@ -29,18 +34,25 @@ The estimate is the maximum-likelihood fit of the *reference* Q(theta) to the ob
    face, sigma_s' -97 %, "converged"). kappa, a and D are averaged over neighbouring patches of the same face (within
    ``smooth_spacings`` patch spacings; kappa with inverse-variance weights). phi saturates the linear term beyond
    one unit of log (:data:`estimation.single_image.fit.CORRECTION_SATURATION_LOG`);
-4. fit F_i to l inside the trust region theta_i +- Delta (per channel and parameter; the fast fit with the data
-   slope D / kappa, :func:`estimation.single_image.estimate_single_image`): theta_fit;
-5. render at theta_fit; the step is accepted where the reference's robust objective (Huber, on the observations
-   normalized by a fixed metric) fell by at least a quarter of what F_i predicted (rho >= 1/4: the classical trust-
-   region ratio test; Conn, Gould, Toint 2000, "Trust-region methods", ch. 6); Delta grows x2 after a good step
-   that reached its boundary and shrinks to a quarter of the step after a poor one; a rejected step keeps the old
-   render and its correction and is re-solved in the smaller region without a new render.
+4. fit F_i to l inside the trust region theta_i +- Delta (the fast fit with the data slope D / kappa and the map B,
+   :func:`estimation.single_image.estimate_single_image`): theta_fit;
+5. render at theta_fit; the step is accepted where the reference's robust objective (Huber on the observations
+   normalized by the noise, the render's noise and a relative model error of the accepted render, the same metric
+   for the accepted point, the new render and the prediction) did not rise; Delta — one radius per channel —
+   grows x2 after a good step (rho >= 3/4, the classical ratio of actual to predicted decrease; Conn, Gould,
+   Toint 2000, "Trust-region methods", ch. 6) that reached it and shrinks to a quarter of the step after a poor
+   one (rho < 1/4); a rejected step keeps the old render and its correction and is re-solved without a new render.
+   After the first poor or rejected step of a channel its steps are Gauss-Newton steps on the reference's own
+   linearization Q + J (theta - theta_i) within Delta (:func:`_gauss_newton_step`): the fast model's curvature,
+   carried through B, can mispredict the scene far from theta_i (a skin1 sphere under a sky: a step proposed at
+   +140 % of sigma_s' raised the objective), its slope at theta_i cannot.
 
-It stops — *converged* — when an accepted point's refit moves every parameter by less than a quarter of its
-standard error (a one-sided sigma_a interval [0, hi] on its linear scale). At that point F_i matches the reference
-in value and slope, so the refit is a stationary point of the reference's own likelihood, and its intervals —
-computed from F_i's Jacobian, i.e. Q' — are those of the reference model, widened by nothing. Without
+It stops — *converged* — when, after at least two renders, an accepted point's refit moves every parameter by less
+than half its standard error (a one-sided sigma_a interval [0, hi] on its linear scale), or a rejected step was
+shorter than one standard error (a statistical tie: the objective cannot tell the two points apart). At that point
+F_i matches the reference in value and slope, so the refit is a stationary point of the reference's own
+likelihood, and its intervals — computed from F_i's Jacobian, i.e. Q' — are those of the reference model; they are
+widened where the Monte Carlo derivatives do not resolve that sensitivity (:func:`_derivative_noise_factor`). Without
 derivatives from the reference (D = 0: the plain defect correction), the fixed point's noise is amplified by the map
 p -> F(p) (slope ~0.6 measured on a skin1 pyramid), so the intervals are widened by max(1, 1/|s|), s the secant slope
 of F(p) - p along the path (x2 when not measured).
@@ -48,8 +60,15 @@ of F(p) - p along the path (x2 when not measured).
 Never confident and wrong: every result carries ``extra["status"]`` per parameter and channel — "ok" only when the
 iteration converged and the interval is finite and narrower than :data:`MAX_OK_INTERVAL_RATIO` (sigma_s') or
 sigma_a is identifiable; "weak" otherwise, with the reason in ``extra["status_reasons"]``. A result that did not
-converge within ``max_iterations`` renders is the last accepted refit, its intervals widened to hold the whole
-last step (the distance still to go can be as large again), flagged weak. Numerical warnings are not emitted.
+converge within ``max_iterations`` renders is the last refit (after Gauss-Newton steps: the last proposal), its
+intervals the hull of every refit's along the path, of the plain start's and of the last step twice over, flagged
+weak. The renders themselves are also read as samples of the likelihood (:func:`_flat_likelihood`): rendered points
+that fit the data equally well (objective within :data:`RESOLVED_OBJECTIVE`) but lie more than a factor
+:data:`FLAT_SPAN` apart, or — with a stated noise level — a best render whose chi-square per observation exceeds
+:data:`MISFIT_CHI2`, say the local (Jacobian) interval does not bound the parameter: its interval becomes the search
+range and its status weak (a 5 mm skimmilk pyramid under a sky, an almost uniformly lit body of albedo ~1 whose
+image hardly depends on sigma_s': renders at 18x and 68x the truth, chi2/n 3.3 both, the Jacobian interval 21x-220x).
+Numerical warnings are not emitted.
 
 The reference renderer is any callable ``reference(sigma_s_prime_per_mm (C,), sigma_a_per_mm (C,), eta, seed) ->
 (radiance, stderr)`` or ``(radiance, stderr, d_radiance, d_stderr)``, radiance and stderr (m or K, C) in the units
@@ -69,11 +88,15 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.sparse import csr_matrix
 from scipy.spatial import cKDTree
 
-from .single_image import (MAX_OK_INTERVAL_RATIO, Lights, Patches, SingleImageResult, estimate_single_image,
-                           map_parameters, parameter_status, patch_irradiance, predict_radiance, sigma_a_verdict)
+from .reference_intervals import (_ASSUMED_SLOPE, FLAT_SPAN, MISFIT_CHI2, RESOLVED_OBJECTIVE, SECANT_SLOPE_BOUNDS,
+                                  _cover, _derivative_noise_factor, _flat_likelihood, _huber_sum, _hull,
+                                  _secant_slope, _widen)
+from .single_image import (MAX_OK_INTERVAL_RATIO, Lights, Patches, SingleImageResult, _box_qp_2d,
+                           estimate_single_image, map_parameters, parameter_status, patch_irradiance, predict_radiance,
+                           sigma_a_verdict)
 
 __all__ = ["ReferenceRenderer", "ReferenceStep", "estimate_with_reference", "MAX_OK_INTERVAL_RATIO",
-           "parameter_status"]
+           "parameter_status", "RESOLVED_OBJECTIVE", "FLAT_SPAN", "MISFIT_CHI2", "SECANT_SLOPE_BOUNDS"]
 
 Array = NDArray[np.float64]
 _Z95 = 1.959963984540054
@@ -84,9 +107,6 @@ SETTLE_SD_FRACTION: float = 0.5
 TIE_SD: float = 1.0
 #: a patch's reference enters multiplicatively (kappa = Q / M) only when Q exceeds this many standard errors
 SIGNAL_SE: float = 5.0
-#: predicted changes of the objective below this (chi-square units of the normalized residuals) are not resolved:
-#: such a step is accepted without the ratio test (Monte Carlo noise along the step dominates it)
-RESOLVED_OBJECTIVE: float = 2.0
 #: the first render's sigma_s' is kept inside this range (per mm): a plain fit at the edge of its search range
 #: (1e-3 or 1e3 /mm, seen on a 5 mm skimmilk pyramid with l_d 18 mm) would cost hours of Monte Carlo walks
 START_SSP_RANGE: tuple[float, float] = (0.02, 50.0)
@@ -98,9 +118,6 @@ SLOPE_SMOOTH_SPACINGS: tuple[float, ...] = (1.5, 3.0, 6.0, 12.0)
 SLOPE_REL_SE: float = 0.2
 #: step of the fast model's central differences in log parameters
 _FAST_FD_STEP = 1e-3
-#: secant slope bounds of the derivative-free path (interval widening only)
-SECANT_SLOPE_BOUNDS: tuple[float, float] = (-2.0, -0.1)
-_ASSUMED_SLOPE = -0.5
 
 
 class ReferenceRenderer(Protocol):
@@ -238,13 +255,6 @@ def _render(reference: Any, theta: Array, eta: float, seed: int, patches: Patche
     return q, se, d, d_se, seconds
 
 
-def _huber_sum(z: Array, k: float = 2.5) -> Array:
-    """Sum over rows of the Huber loss of z (m, C), NaN rows skipped: (C,)."""
-    a = np.abs(z)
-    loss = np.where(a <= k, 0.5 * a ** 2, k * a - 0.5 * k * k)
-    return np.nansum(np.where(np.isfinite(loss), loss, np.nan), axis=0)
-
-
 def _adaptive_slope(raw: Array, raw_se: Array, scale: Array, smoothers: list[csr_matrix | None]) -> Array:
     """Neighbour means of the correction's derivative ``raw`` (m, C, 2), per patch over the smallest of the
     ``smoothers`` (growing radii) whose mean has a standard error below :data:`SLOPE_REL_SE` x ``scale`` (the
@@ -360,7 +370,8 @@ def _search_box(theta: Array, radius: Array, prev: SingleImageResult, se_floor: 
     r = np.maximum(radius, 3.0 * np.where(np.isfinite(se), np.minimum(se, 10.0), 10.0))
     r = np.where(se_floor[:, None], r, radius)
     lo, hi = theta - r, theta + r
-    sa_ci = np.asarray(prev.sigma_a_ci_per_mm, dtype=np.float64).reshape(-1, 2)
+    stat = prev.extra.get("statistical_ci") if isinstance(prev.extra, dict) else None
+    sa_ci = np.asarray(stat["sigma_a_per_mm"] if stat else prev.sigma_a_ci_per_mm, dtype=np.float64).reshape(-1, 2)
     one = ~(sa_ci[:, 0] > 0) & np.isfinite(sa_ci[:, 1]) & (sa_ci[:, 1] > 0) & se_floor
     lo[one, 1] = np.log(1e-7)
     hi[one, 1] = np.maximum(hi[one, 1], np.log(3.0 * sa_ci[one, 1]))
@@ -393,7 +404,10 @@ def _standard_errors(r: SingleImageResult, theta: Array) -> Array:
     """Per channel and parameter (C, 2): the log standard error from the 95 % interval; for a one-sided sigma_a
     interval [0, hi] the linear-scale error hi / 2 / 1.96 expressed at the estimate (relative)."""
     out = np.full(theta.shape, np.inf)
-    for j, ci in enumerate((r.sigma_s_prime_ci_per_mm, r.sigma_a_ci_per_mm)):
+    stat = r.extra.get("statistical_ci") if isinstance(r.extra, dict) else None  # a flagged plain fit's own
+    cis = ((stat["sigma_s_prime_per_mm"], stat["sigma_a_per_mm"]) if stat else
+           (r.sigma_s_prime_ci_per_mm, r.sigma_a_ci_per_mm))
+    for j, ci in enumerate(cis):
         if ci is None:
             continue
         c = np.asarray(ci, dtype=np.float64).reshape(-1, 2)
@@ -412,101 +426,49 @@ def _settled(step: Array, se: Array) -> NDArray[np.bool_]:
     return np.all(np.abs(np.expm1(np.abs(step))) <= SETTLE_SD_FRACTION * se, axis=1)
 
 
-def _secant_slope(x_prev: Array, g_prev: Array, x: Array, g: Array) -> Array:
-    """Secant slope (g - g_prev) / (x - x_prev) of G = F(x) - x (clipped to SECANT_SLOPE_BOUNDS); NaN where the two
-    points coincide. 1 + s is the slope of the map, and the refit F(x) = x + G is |G| |1 + s| / |s| from the fixed
-    point (Aitken's error estimate; Ortega & Rheinboldt 2000, sec. 12.1)."""
-    dx = x - x_prev
-    with np.errstate(divide="ignore", invalid="ignore"):
-        slope = (g - g_prev) / dx
-    slope = np.where(np.isfinite(slope), slope, np.nan)
-    return np.where(np.abs(dx) > 1e-9, np.clip(slope, *SECANT_SLOPE_BOUNDS), np.nan)
+def _metric(sig: Array | None, se: Array, q: Array, model_error: float) -> Array:
+    """Standard deviation (m, C) an observation is compared with a render by: the stated noise, the render's and a
+    relative model error of the render's radiance (without stated noise: a relative scale with a small floor)."""
+    scale = np.abs(q)
+    if sig is not None:
+        return np.sqrt(sig ** 2 + se ** 2 + (model_error * scale) ** 2)
+    return np.sqrt(se ** 2 + (max(model_error, 0.02) * scale) ** 2
+                   + (1e-3 * np.nanmax(scale, axis=0, keepdims=True)) ** 2)
 
 
-def _widen(ci: Array | None, est: Array, factor: Array) -> Array | None:
-    """95 % intervals (C, 2) widened by ``factor`` (C,): in log for a two-sided interval, linearly about the estimate
-    for a one-sided one [0, hi] (its lower end stays 0)."""
-    if ci is None:
-        return None
-    c = np.array(ci, dtype=np.float64).reshape(-1, 2)
-    e = np.asarray(est, dtype=np.float64).reshape(-1)
-    two = np.isfinite(c[:, 0]) & (c[:, 0] > 0) & np.isfinite(c[:, 1]) & (e > 0)
-    with np.errstate(all="ignore"):
-        lo2 = e * (c[:, 0] / e) ** factor
-        hi2 = e * (c[:, 1] / e) ** factor
-    hi1 = e + factor * (c[:, 1] - e)
-    out = c.copy()
-    out[two, 0], out[two, 1] = lo2[two], hi2[two]
-    one = ~two & np.isfinite(c[:, 1])
-    out[one, 1] = np.maximum(hi1[one], c[one, 1])
-    return out
-
-
-def _hull(a: Array, b: Array | None) -> Array:
-    """Elementwise hull of two interval arrays (C, 2) (non-finite ends of ``b`` ignored)."""
-    if b is None:
-        return a
-    bb = np.asarray(b, dtype=np.float64).reshape(-1, 2)
-    out = np.array(a, dtype=np.float64).reshape(-1, 2)
-    out[:, 0] = np.where(np.isfinite(bb[:, 0]), np.minimum(out[:, 0], bb[:, 0]), out[:, 0])
-    out[:, 1] = np.where(np.isfinite(bb[:, 1]), np.maximum(out[:, 1], bb[:, 1]), out[:, 1])
-    return out
-
-
-def _derivative_noise_factor(corr: _Correction, metric: Array) -> Array:
-    """(C, 2) factors >= 1 by which the intervals widen because the reference's derivatives are Monte Carlo
-    estimates: the information the fit used, I_fit = sum w J J^T (J the corrected model's smoothed derivatives), over
-    the unbiased estimate of the reference's own, I = sum w (Q' Q'^T - Cov Q') (errors in variables: the noise of
-    Q' inflates Q' Q'^T by its variance). Where the derivatives are noise, I is ~0 and the factor infinite: the
-    interval spans the parameter's whole range. f_k = sqrt((I^-1)_kk / (I_fit^-1)_kk)."""
-    n_ch = corr.q.shape[1]
-    out = np.ones((n_ch, 2))
-    if corr.dq is None or corr.dq_se is None or corr.jac is None:
-        return out
-    w = 1.0 / metric ** 2
+def _gauss_newton_step(corr: _Correction, obs: Array, metric: Array, radius: Array) -> tuple[Array, Array]:
+    """Per channel the trust-region Gauss-Newton step on the reference's own linearization Q + J (theta - theta_i)
+    (J = kappa M' B + D, the corrected model's derivatives at the render point): the box-constrained minimizer of
+    the Huber-weighted squared residuals within +- ``radius`` (C, 2), and the objective it predicts. Used after a
+    rejected step: the fast model's curvature (through the space map) then mispredicts the reference, while its
+    slope at the render point is the reference's."""
+    n_ch = obs.shape[1]
+    step = np.zeros((n_ch, 2))
+    pred = np.full(n_ch, np.inf)
+    if corr.jac is None:
+        return step, pred
+    z = (obs - corr.q) / metric
+    h = np.where(np.abs(z) > 2.5, 2.5 / np.where(np.abs(z) > 0, np.abs(z), 1.0), 1.0)
     for c in range(n_ch):
-        ok = np.isfinite(w[:, c]) & np.all(np.isfinite(corr.dq[:, c]), axis=1) & np.all(
-            np.isfinite(corr.dq_se[:, c]), axis=1) & np.all(np.isfinite(corr.jac[:, c]), axis=1)
+        ok = np.isfinite(z[:, c]) & np.all(np.isfinite(corr.jac[:, c]), axis=1)
         if ok.sum() < 3:
             continue
-        wc = w[ok, c]
-        j_fit, j_raw, se = corr.jac[ok, c], corr.dq[ok, c], corr.dq_se[ok, c]
-        i_fit = (j_fit * wc[:, None]).T @ j_fit
-        i_true = (j_raw * wc[:, None]).T @ j_raw - np.diag(np.sum(wc[:, None] * se ** 2, axis=0))
-        try:
-            v_fit = np.diag(np.linalg.pinv(i_fit))
-            ev = np.linalg.eigvalsh(i_true)
-            if ev.min() > 1e-9 * max(ev.max(), 1e-300):
-                v_true = np.diag(np.linalg.inv(i_true))
-            else:  # the correlation is not resolved: each parameter on its own information (its diagonal)
-                d_true, d_fit = np.diag(i_true), np.diag(i_fit)
-                v_true = np.where(d_true > 0, 1.0 / np.where(d_true > 0, d_true, 1.0), np.inf)
-                v_fit = np.where(d_fit > 0, 1.0 / np.where(d_fit > 0, d_fit, 1.0), np.inf)
-        except np.linalg.LinAlgError:
-            continue
-        with np.errstate(all="ignore"):
-            f = np.sqrt(np.where(v_fit > 0, v_true / v_fit, np.inf))
-        out[c] = np.where(np.isfinite(f) & (f > 0), np.maximum(f, 1.0), 1e6)
-    return out
-
-
-def _cover(ci: Array | None, points: Array) -> Array | None:
-    """Intervals (C, 2) stretched to contain ``points`` (C, P) (linear values) and their mirror images about the
-    interval's centre point set (the distance still to go can be as large as the last step)."""
-    if ci is None:
-        return None
-    c = np.array(ci, dtype=np.float64).reshape(-1, 2)
-    lo_p, hi_p = np.min(points, axis=1), np.max(points, axis=1)
-    span = hi_p / np.maximum(lo_p, 1e-300)
-    c[:, 0] = np.where(c[:, 0] > 0, np.minimum(c[:, 0], lo_p / span), c[:, 0])
-    c[:, 1] = np.maximum(c[:, 1], hi_p * span)
-    return c
+        w = (h[ok, c] / metric[ok, c] ** 2)
+        j, r = corr.jac[ok, c], (obs - corr.q)[ok, c]
+        hess = (j * w[:, None]).T @ j
+        grad = -(j * w[:, None]).T @ r
+        d = _box_qp_2d(grad[None, :], hess[None, :, :] + 1e-12 * np.trace(hess) * np.eye(2)[None], -radius[c][None],
+                       radius[c][None])[0]
+        if np.all(np.isfinite(d)):
+            step[c] = d
+            pred[c] = float(_huber_sum(((r - j @ d) / metric[ok, c])[:, None])[0])
+    return step, pred
 
 
 def estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lights: Lights, eta: float,
                             reference: ReferenceRenderer, *, noise_sigma: ArrayLike | None = None,
                             base_model: str = "mc-table", max_iterations: int = 6, rel_tol: float = 0.0,
-                            seed: int = 1, smooth_spacings: float = 1.5, min_iterations: int = 1,
+                            seed: int = 1, smooth_spacings: float = 1.5, min_iterations: int | None = None,
                             **fit_kwargs: Any) -> SingleImageResult:
     """Fit the reference's radiance to the observations by trust-region Gauss-Newton steps of the corrected fast
     model (module docstring).
@@ -521,6 +483,8 @@ def estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, ligh
     ``extra["model_bias"]`` (the fast model over the reference at the end). A failed base fit is returned as it is
     (falsy, its message prefixed); a reference with no usable value gives a falsy result that says so.
     """
+    if min_iterations is None:  # two renders at least: the second checks the first's corrected model
+        min_iterations = min(2, max_iterations)
     with np.errstate(all="ignore"):  # no numerical warning reaches the user: the status and message say it
         return _estimate_with_reference(observed_radiance, patches, lights, eta, reference, noise_sigma, base_model,
                                         max_iterations, rel_tol, seed, smooth_spacings, min_iterations, fit_kwargs)
@@ -556,6 +520,7 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
     t0 = time.perf_counter()
     with np.errstate(all="ignore"):
         result = estimate_single_image(obs, patches, e_t, eta_f, model=base_model, noise_sigma=sig, **fit_kwargs)
+    start = result
     if not result:
         return replace(result, message=f"base fit ({base_model}) failed: {result.message}")
     model_name = f"{base_model}+reference"
@@ -573,35 +538,44 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
     theta_try[:, 0] = np.clip(theta_try[:, 0], np.log(START_SSP_RANGE[0]), np.log(START_SSP_RANGE[1]))
     radius = np.full((n_ch, 2), TRUST_RADIUS_START)
     se_floor = np.ones(n_ch, bool)
+    gn_mode = np.zeros(n_ch, bool)  # channels stepping on the reference's linearization (after a rejected step)
     acc: _Correction | None = None
     acc_fit: SingleImageResult | None = None
     predicted = np.full(n_ch, np.nan)  # F_acc's objective at theta_try
     metric: Array | None = None
-    huber_scale = 1.0
+    huber_scale: float | None = None
+    pred_img: Array | None = None  # the image the corrected model predicts at the next render point
     converged = np.zeros(n_ch, bool)
     with_derivatives = False
     path: list[tuple[Array, Array]] = []  # (accepted point, refit) for the derivative-free widening
     refits: list[SingleImageResult] = []
     last_step = np.zeros((n_ch, 2))
+    rendered: list[tuple[Array, Array]] = []  # (render point, its radiance) for the flat-likelihood check
     for it in range(1, max_iterations + 1):
         q, se, dq, dq_se, render_s = _render(reference, theta_try, eta_f, seed, patches, n_ch)
+        rendered.append((theta_try.copy(), q.copy()))
         with_derivatives = dq is not None
         good = np.isfinite(q) & np.isfinite(se)
         if not good.any():
             return SingleImageResult(False, f"the reference renderer returned no finite radiance at the observed "
                                      f"patches (iteration {it})", "direct", model_name, eta_f,
                                      extra={"reference": [s.as_dict() for s in steps]})
-        if metric is None:  # a fixed metric for the objective: stated noise, reference noise, relative model error
-            scale = np.abs(np.where(good, q, np.nan))
-            if sig is not None:
-                metric = np.sqrt(sig ** 2 + se ** 2 + (model_error * scale) ** 2)
-            else:
-                metric = np.sqrt(se ** 2 + (max(model_error, 0.02) * scale) ** 2
-                                 + (1e-3 * np.nanmax(scale, axis=0, keepdims=True)) ** 2)
+        # the metric of the objective: stated noise, reference noise and a relative model error, taken from the
+        # accepted point's render (the first render before one is accepted); each ratio test compares the accepted
+        # point, the new render and the prediction in the same metric (a metric frozen at a far-off first render
+        # mis-weighted them: a sky-lit skin1 sphere rejected a step the observations' chi-square favoured)
+        metric = _metric(sig, acc.q_se if acc is not None else se, acc.q if acc is not None else q, model_error)
+        if huber_scale is None:
+            # stated noise: residuals are in its units (a scale from the first render's residuals would squash the
+            # objective wherever the start is far off); relative weights: the robust scale of the first render's
             z0 = (obs - q) / metric
-            huber_scale = max(1.0, 1.4826 * float(np.nanmedian(np.abs(z0)))) if np.isfinite(z0).any() else 1.0
+            huber_scale = 1.0 if sig is not None else (
+                max(1.0, 1.4826 * float(np.nanmedian(np.abs(z0)))) if np.isfinite(z0).any() else 1.0)
         with np.errstate(all="ignore"):
             objective = _huber_sum((obs - q) / (metric * huber_scale))
+            if acc is not None:
+                acc.objective = _huber_sum((obs - acc.q) / (metric * huber_scale))
+                predicted = _huber_sum((obs - pred_img) / (metric * huber_scale))
             m_fast, dm_fast = _fast_model(patches, e_t, eta_f, theta_try, base_model)
         new = _build(theta_try, q, se, dq, dq_se, m_fast, dm_fast, smoother, slope_smoothers, objective,
                      1.0 / metric ** 2)
@@ -619,12 +593,17 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
             # resolution of the objective and accepted as well
             accepted = (actual >= 0) | (np.abs(pred) < RESOLVED_OBJECTIVE)
             se_floor &= accepted
-            step_len = np.abs(theta_try - acc.theta)
-            grow = (rho >= 0.75) & np.any(step_len >= 0.9 * radius, axis=1)
+            # the fast model's curvature (space mapped) mispredicted the reference: step on its linearization from now
+            gn_mode |= (~accepted | (rho < 0.25)) & with_derivatives
+            # one radius per channel (both parameters): scaling each by its own component of a rejected step left
+            # sigma_a a radius of 0.01 after a step that had moved sigma_s' (measured: a sky-lit skin1 sphere then
+            # crept towards sigma_a's optimum by 3 % per render)
+            step_len = np.max(np.abs(theta_try - acc.theta), axis=1, keepdims=True)
+            grow = (rho >= 0.75) & (step_len[:, 0] >= 0.9 * radius[:, 0])
             radius = np.where(grow[:, None], np.minimum(2.0 * radius, TRUST_RADIUS_MAX), radius)
             shrink = ~accepted | (rho < 0.25)
             radius = np.where(shrink[:, None], np.maximum(0.25 * np.maximum(step_len, TRUST_RADIUS_MIN),
-                                                          TRUST_RADIUS_MIN), radius)
+                                                          TRUST_RADIUS_MIN) * np.ones((1, 2)), radius)
             # channels whose step was rejected keep the accepted point and its correction
             keep = ~accepted
             for name in ("q", "q_se", "kappa", "kappa_var", "shift", "shift_var", "slope", "additive", "dq", "dq_se",
@@ -645,6 +624,9 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
                            f"{fit.message}", extra={**fit.extra, "reference": [s.as_dict() for s in steps]})
         theta_fit = _theta(fit)
         acc_prev_step = None if rho_is_first else theta_try - acc.theta  # the step just tested (0 if accepted)
+        gn_step, gn_pred = _gauss_newton_step(acc, obs, metric, radius) if gn_mode.any() else (None, None)
+        if gn_step is not None:
+            theta_fit = np.where(gn_mode[:, None], acc.theta + gn_step, theta_fit)
         step = theta_fit - acc.theta
         last_step = step
         path.append((acc.theta.copy(), theta_fit.copy()))
@@ -665,7 +647,9 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
             m_fit, _ = _fast_model(patches, e_t, eta_f, mapped, base_model)
             phi = np.tanh(step)  # CORRECTION_SATURATION_LOG = 1
             f_fit = acc.kappa * m_fit + acc.shift + np.einsum("mck,ck->mc", acc.slope, phi)
-            predicted = _huber_sum((obs - f_fit) / (metric * huber_scale))
+            if gn_step is not None and acc.jac is not None:  # the linearization's image where it stepped
+                f_fit = np.where(gn_mode[None, :], acc.q + np.einsum("mck,ck->mc", acc.jac, gn_step), f_fit)
+            pred_img = f_fit
         kq = np.where(acc.additive | ~np.isfinite(acc.kappa), np.nan, acc.kappa)
         with np.errstate(all="ignore"):
             kstats = [np.nanmedian(kq, axis=0), np.nanpercentile(kq, 5, axis=0), np.nanpercentile(kq, 95, axis=0),
@@ -680,6 +664,19 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
             break
         theta_try = theta_fit
     assert acc is not None and acc_fit is not None
+    if gn_mode.any():
+        # the estimate of a channel that stepped on the linearization is its last accepted point: the corrected
+        # model's fit held within a hair of it gives the intervals (the model matches the render there in value and
+        # slope); the other channels keep their refit
+        theta_keep = _theta(acc_fit)
+        # converged: the accepted point; not converged: the last proposal (the linearization's minimum, inside the
+        # trust region the last ratio tests validated), the intervals then stretched over the step (below)
+        centre = np.where(gn_mode[:, None], np.where(converged[:, None], acc.theta, theta_fit), theta_keep)
+        half = np.where(gn_mode[:, None], 2e-3, 1e-9)
+        final = _corrected_fit(obs, sig, acc, patches, e_t, eta_f, base_model,
+                               np.stack([centre - half, centre + half], axis=1), fit_kwargs)
+        if final:
+            acc_fit = final
     result = acc_fit
     theta_fin = _theta(result)
     # intervals: the fit's own (the reference's Jacobian) when converged with derivatives; without derivatives,
@@ -703,29 +700,34 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
         # (clipped to the search ranges: 1e-3-1e3 /mm for sigma_s', 0-50 /mm for sigma_a)
         ssp_ci = np.clip(_widen(ssp_ci, np.exp(theta_fin[:, 0]), factor[:, 0]), 1e-3, 1e3)
         sa_ci = np.clip(_widen(sa_ci, np.exp(theta_fin[:, 1]), factor[:, 1]), 0.0, 50.0)
-        propagation["derivative_noise_factor"] = factor.tolist()
+        propagation.update(factor=factor.T.tolist(), factor_from="the derivative noise (errors in variables)")
     if not np.all(converged):
         pts_s = np.exp(np.stack([acc.theta[:, 0], theta_fin[:, 0]], axis=1))
         pts_a = np.exp(np.stack([acc.theta[:, 1], theta_fin[:, 1]], axis=1))
         nc = ~converged
         ssp_w, sa_w = _cover(ssp_ci, pts_s), _cover(sa_ci, pts_a)
         # and every refit's interval along the path: where the iteration has not settled, any of them may hold it
-        for f in refits:
+        # and the plain start's (the search range where the flat model is outside its validity)
+        for f in refits + [start]:
             ssp_w = _hull(ssp_w, f.sigma_s_prime_ci_per_mm)
             sa_w = _hull(sa_w, f.sigma_a_ci_per_mm)
         ssp_ci = np.where(nc[:, None], ssp_w, ssp_ci)
         sa_ci = np.where(nc[:, None], sa_w, sa_ci)
-        propagation["not_converged"] = ("intervals: the hull of every refit's along the path, stretched over the last "
-                                        "step and as much again")
+        propagation["not_converged"] = ("intervals: the hull of every refit's along the path and the plain start's, "
+                                        "stretched over the last step and as much again")
     propagation["refit_sigma_s_prime_ci_per_mm"] = np.asarray(result.sigma_s_prime_ci_per_mm).tolist()
     propagation["refit_sigma_a_ci_per_mm"] = np.asarray(result.sigma_a_ci_per_mm).tolist()
+    ssp_ci, sa_ci, flat_why = _flat_likelihood(rendered, obs, metric * huber_scale, ssp_ci, sa_ci, sig is not None)
+    if any(flat_why):
+        converged = converged & ~np.array([bool(w) for w in flat_why])
+        propagation["flat_likelihood"] = flat_why
     ratio = float(fit_kwargs.get("identifiable_ratio", 10.0))
     verdicts = [sigma_a_verdict(float(lo), float(hi), ratio) for lo, hi in np.asarray(sa_ci).reshape(-1, 2)]
     result = replace(result, sigma_s_prime_ci_per_mm=ssp_ci, sigma_a_ci_per_mm=sa_ci,
                      sigma_a_identifiable=all(v[0] for v in verdicts),
                      sigma_a_identifiable_per_channel=tuple(v[0] for v in verdicts),
                      identifiability_reason="; ".join(f"channel {c}: {why}" for c, (_, why) in enumerate(verdicts)))
-    status, reasons = parameter_status(result, converged)
+    status, reasons = parameter_status(result, converged, extra_reasons=flat_why)
     # the fast model's bias in this scene: M / Q at the final accepted render point
     with np.errstate(all="ignore"):
         m_acc, _ = _fast_model(patches, e_t, eta_f, acc.theta, base_model)

@@ -54,6 +54,9 @@ class MonteCarloReference:
     valid_px: NDArray[np.bool_] | None = None
     g: float = 0.0
     derivatives: bool = True
+    #: the derivative in log sigma_s' as a paired forward difference of this step (0: the score-function estimate;
+    #: simulators.mc.render's ``fd_log_sigma_s``)
+    fd_log_sigma_s: float = 0.1
     renders: list[dict[str, Any]] = field(default_factory=list)
 
     def __post_init__(self) -> None:
@@ -77,7 +80,7 @@ class MonteCarloReference:
         sa = np.atleast_1d(np.asarray(sigma_a_per_mm, dtype=np.float64))
         media = [Medium.from_reduced(float(s), float(a), g=self.g, eta=float(eta)) for s, a in zip(ssp, sa)]
         img = render(self.shape, media, self.camera, self.lights, spp=int(self.spp), seed=int(seed),
-                     derivatives=self.derivatives)
+                     derivatives=self.derivatives, fd_log_sigma_s=self.fd_log_sigma_s)
         valid = img.mask if self.valid_px is None else img.mask & np.asarray(self.valid_px, dtype=bool)
         valid = np.broadcast_to(valid[..., None], img.radiance.shape)
         obs, sig = sample_at_points(img.radiance, img.stderr ** 2, valid, self.camera, self.patches.centers_mm,

@@ -743,9 +743,11 @@ def parse_scene(data: dict[str, Any], path: Path, file: str | None = None) -> Sc
         raise top.fail("point_lights", "at least one light: [[point_lights]], [[directional_lights]] or "
                        "[environment]", None)
     if env is not None and not specular_free:
-        raise im.fail("specular_free", "true when the lighting includes an environment map: specular reflection "
-                      "of an environment covers the whole object and cannot be masked geometrically; supply a "
-                      "cross-polarized (cross_polarized = true) or otherwise specular-free image", False)
+        raise im.fail("specular_free", "true when the lighting includes an environment map (specular reflection "
+                      "of an environment covers the whole object and cannot be masked geometrically): if the image "
+                      "holds no specular reflection (a diffuse-only render, a separated diffuse pass), set "
+                      "specular_free = true; set cross_polarized = true only for a photograph through crossed "
+                      "polarizers (it doubles the image's radiance)", False)
 
     mr = top.section("material") if top.has("material") else _SceneReader(file, {}, "material.")
     mr.only(("eta", "model"))

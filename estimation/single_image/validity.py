@@ -118,7 +118,8 @@ def parameter_status(result: SingleImageResult, converged: NDArray[np.bool_] | N
             why.append(forced[c])
         wide = not (lo > 0 and np.isfinite(hi) and hi / lo <= max_ratio)
         s_ok = not why and not wide
-        a_ok = not why and bool(ident[c])
+        # sigma_a is no measurement while sigma_s' is not one: the two are estimated together (correlated)
+        a_ok = s_ok and bool(ident[c])
         if wide:
             why.append(f"sigma_s' interval {lo:.3g}-{hi:.3g} /mm spans more than a factor {max_ratio:g}")
         if not ident[c]:

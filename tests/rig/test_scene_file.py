@@ -330,6 +330,53 @@ def test_environment_orientation_keys(tmp_path):
                                atol=1e-12)
 
 
+def _dir_from_angles(theta: np.ndarray, phi: np.ndarray, up: str) -> np.ndarray:
+    st = np.sin(theta)
+    if up == "y":  # tools with +y up: phi measured in the x-z plane as in their atan2(x, -z)
+        return np.stack([st * np.sin(phi), np.cos(theta), -st * np.cos(phi)], -1)
+    return np.stack([st * np.cos(phi), st * np.sin(phi), np.cos(theta)], -1)
+
+
+# docs/scene-file.md, "Environment maps (lat-long)": each tool's lookup, inverted to the direction of the centre of
+# pixel (row i, column j) of an H x W map (u = (j + 0.5) / W from the left, v = (i + 0.5) / H from the top)
+LAT_LONG_TOOLS = {
+    # Mitsuba 3 / 0.6 envmap: u = atan2(w_x, -w_z) / 2pi (wrapped), v = acos(w_y) / pi
+    "mitsuba": (lambda u, v: _dir_from_angles(np.pi * v, 2 * np.pi * u, "y"),
+                dict(up=(0.0, 1.0, 0.0), phi0=(0.0, 0.0, -1.0), azimuth="clockwise")),
+    # Debevec / USC ICT probes: u = 1/2 + atan2(w_x, -w_z) / 2pi, v = acos(w_y) / pi
+    "ict-probe": (lambda u, v: _dir_from_angles(np.pi * v, 2 * np.pi * (u - 0.5), "y"),
+                  dict(up=(0.0, 1.0, 0.0), phi0=(0.0, 0.0, 1.0), azimuth="clockwise")),
+    # Blender / Cycles equirectangular: u = 1/2 - atan2(w_y, w_x) / 2pi, row from the top = acos(w_z) / pi
+    "blender": (lambda u, v: _dir_from_angles(np.pi * v, np.pi - 2 * np.pi * u, "z"),
+                dict(up=(0.0, 0.0, 1.0), phi0=(-1.0, 0.0, 0.0), azimuth="clockwise")),
+    # pbrt-v3 infinite light: u = atan2(w_y, w_x) / 2pi (wrapped), v = acos(w_z) / pi
+    "pbrt-v3": (lambda u, v: _dir_from_angles(np.pi * v, 2 * np.pi * u, "z"),
+                dict(up=(0.0, 0.0, 1.0), phi0=(1.0, 0.0, 0.0), azimuth="counterclockwise")),
+}
+
+
+@pytest.mark.parametrize("tool", sorted(LAT_LONG_TOOLS))
+def test_lat_long_conventions_of_common_renderers(tmp_path, tool):
+    """The keys of docs/scene-file.md's table map every pixel of a map made for that tool to the direction the
+    tool looks it up in (its lookup formula inverted). The ICT-probe row is the former y-up example of the docs;
+    it is 180 degrees off for a Mitsuba map."""
+    from rig.scene_file import EnvironmentSpec
+
+    h, w = 8, 16
+    to_dir, keys = LAT_LONG_TOOLS[tool]
+    spec = EnvironmentSpec(path=tmp_path / "x.exr", radiance_scale=(1.0,), rotation_deg=0.0, max_size=64,
+                           sha256="", **keys)
+    d, _ = environment_directions(spec, np.zeros((h, w, 1)))
+    i, j = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
+    want = to_dir((j.ravel() + 0.5) / w, (i.ravel() + 0.5) / h)
+    np.testing.assert_allclose(d, want, atol=1e-12)
+    if tool == "mitsuba":  # the ICT keys on a Mitsuba map: every direction mirrored through the up axis
+        ict = EnvironmentSpec(path=tmp_path / "x.exr", radiance_scale=(1.0,), rotation_deg=0.0, max_size=64,
+                              sha256="", **LAT_LONG_TOOLS["ict-probe"][1])
+        d2, _ = environment_directions(ict, np.zeros((h, w, 1)))
+        np.testing.assert_allclose(d2 * [-1, 1, -1], d, atol=1e-12)
+
+
 def test_specular_cone_masks_a_highlight(tmp_path, capsys, point_image):
     """specular_free = false masks the patches around the mirror direction of the light: an image with a
     highlight then fits as well as a highlight-free one; declaring it specular-free leaves the highlight in."""
