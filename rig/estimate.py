@@ -274,29 +274,25 @@ def _object_center(manifest: dict[str, Any], surveys: dict[str, Any]) -> np.ndar
     return np.asarray(surveys[target]["xyz_mm"], float) - np.asarray(obj["target_offset_mm"], float)
 
 
-def pixel_faces(mesh, camera) -> np.ndarray:
-    """Index of the mesh face seen by each pixel (H, W), -1 where no face covers the pixel centre.
+def pixel_faces(mesh: Any, camera: Any, *, engine: Any = None) -> np.ndarray:
+    """Index of the mesh face seen by each pixel (H, W) int32, -1 where the pixel's ray misses the mesh.
 
-    Front-facing faces are rasterized back to front (painter's order by centroid depth) into a face-ID
-    buffer with OpenCV, at 1/256 px sub-pixel precision.
+    Exact for any mesh (concave, several bodies, self-occluding): one ray per pixel centre from the camera
+    (``camera.pixel_rays()``: the pinhole, or a scene file's distorted camera through its undistorted pixel
+    centres), first hit by :class:`estimation.rays.RayEngine` (Embree; built here from ``mesh.vertices`` and
+    ``mesh.faces`` unless an ``engine`` of the same mesh is given). A first hit on the back of a face (an open
+    mesh seen from behind, or from inside) is -1 too: no outer surface is observed there.
     """
-    import cv2
+    from estimation.rays import RayEngine
 
-    verts = np.asarray(mesh.vertices, float)
-    faces = np.asarray(mesh.faces)
-    uv, depth = camera.project(verts)
-    centers = verts[faces].mean(axis=1)
-    normals = np.asarray(mesh.face_normals, float)
-    facing = np.sum(normals * (camera.C - centers), axis=1) > 0
-    in_front = np.all(depth[faces] > 0, axis=1)
-    idx = np.flatnonzero(facing & in_front)
-    order = idx[np.argsort(-camera.project(centers[idx])[1])]      # far to near
-    buf = np.full((camera.height_px, camera.width_px), -1, np.int32)
-    shift = 8
-    pts = np.round((uv[faces[order]] + 0.0) * (1 << shift)).astype(np.int32)   # pixel centres at integers
-    for f, tri in zip(order, pts):
-        cv2.fillConvexPoly(buf, tri, int(f), lineType=cv2.LINE_8, shift=shift)
-    return buf
+    if engine is None:
+        engine = RayEngine(np.asarray(mesh.vertices, float), np.asarray(mesh.faces))
+    origins, dirs = camera.pixel_rays()
+    face, _ = engine.first_hit(origins, dirs)
+    hit = face >= 0
+    back = np.einsum("ij,ij->i", engine.face_normals[face[hit]], dirs[hit]) >= 0
+    face[hit] = np.where(back, -1, face[hit])
+    return face.astype(np.int32)
 
 
 def sample_at_points(img: np.ndarray, var: np.ndarray, valid: np.ndarray, camera, points_mm: np.ndarray,

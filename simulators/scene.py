@@ -25,6 +25,7 @@ import trimesh
 from drivers.contracts import Polarization
 from estimation.camera import PinholeCamera, intersect_sphere
 from estimation.forward import diffuse_exitance
+from estimation.rays import RayEngine
 from estimation.fresnel import fresnel_reflectance, fresnel_transmittance
 
 if TYPE_CHECKING:
@@ -298,6 +299,8 @@ class MeshObject:
     eta: float
     subdivisions: int = 0
     specular_roughness: float = 0.15
+    _engine: RayEngine | None = field(default=None, repr=False, compare=False)
+    _engine_key: int | None = field(default=None, repr=False, compare=False)
 
     def patches(self) -> tuple[FloatArray, FloatArray, FloatArray]:
         m = self.mesh
@@ -308,35 +311,25 @@ class MeshObject:
 
     def _hits(self, origins: FloatArray, dirs: FloatArray) -> tuple[FloatArray, npt.NDArray[np.intp],
                                                                      FloatArray, FloatArray]:
-        """Nearest hit of each ray (M, 3): t (inf if none), face index, barycentrics (b1, b2) (Moller-Trumbore)."""
-        tri = np.asarray(self.mesh.triangles, float)
-        v0, e1, e2 = tri[:, 0], tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
-        M = origins.shape[0]
-        best = np.full(M, np.inf)
-        face = np.full(M, -1, np.intp)
-        bb1 = np.zeros(M)
-        bb2 = np.zeros(M)
-        step = max(1, 500_000 // max(len(tri), 1))  # (step, F, 3) float64 temporaries of ~12 MB
-        with np.errstate(divide="ignore", invalid="ignore"):
-            for s in range(0, M, step):
-                o, d = origins[s:s + step, None, :], dirs[s:s + step, None, :]
-                pv = np.cross(d, e2[None])
-                det = np.sum(e1[None] * pv, -1)
-                inv = 1.0 / det
-                tv = o - v0[None]
-                b1 = np.sum(tv * pv, -1) * inv
-                qv = np.cross(tv, e1[None])
-                b2 = np.sum(d * qv, -1) * inv
-                t = np.sum(e2[None] * qv, -1) * inv
-                ok = (np.abs(det) > 1e-12) & (b1 >= 0) & (b2 >= 0) & (b1 + b2 <= 1) & (t > 1e-9)
-                t = np.where(ok, t, np.inf)
-                j = np.argmin(t, axis=1)
-                r = np.arange(t.shape[0])
-                best[s:s + step] = t[r, j]
-                face[s:s + step] = j
-                bb1[s:s + step] = b1[r, j]
-                bb2[s:s + step] = b2[r, j]
-        return best, face, bb1, bb2
+        """Nearest hit of each ray (M, 3) (unit ``dirs``): t (inf if none), face index (-1 if none), barycentrics
+        (b1, b2) of the hit point on that face (0 for a miss); first hits by :class:`estimation.rays.RayEngine`."""
+        key = hash(self.mesh)    # trimesh's hash of the vertex and face data: an edited mesh gets a new engine
+        if self._engine is None or self._engine_key != key:
+            self._engine = RayEngine(np.asarray(self.mesh.vertices, float), np.asarray(self.mesh.faces))
+            self._engine_key = key
+        face, t = self._engine.first_hit(origins, dirs, min_dist=1e-9)
+        hit = face >= 0
+        tri = np.asarray(self.mesh.triangles, float)[face[hit]]
+        p = origins[hit] + t[hit, None] * dirs[hit]
+        e1, e2, w = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0], p - tri[:, 0]
+        d11, d12, d22 = (np.einsum("ij,ij->i", a, b) for a, b in ((e1, e1), (e1, e2), (e2, e2)))
+        w1, w2 = np.einsum("ij,ij->i", w, e1), np.einsum("ij,ij->i", w, e2)
+        den = d11 * d22 - d12 * d12
+        bb1 = np.zeros(len(face))
+        bb2 = np.zeros(len(face))
+        bb1[hit] = (d22 * w1 - d12 * w2) / den
+        bb2[hit] = (d11 * w2 - d12 * w1) / den
+        return t, face, bb1, bb2
 
     def intersect(self, camera: PinholeCamera) -> tuple[FloatArray, npt.NDArray[np.bool_]]:
         origins, dirs = camera.pixel_rays()

@@ -8,6 +8,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..forward import irradiance_directional, irradiance_point_lights
+from ..rays import RayEngine
 
 Array = NDArray[np.float64]
 
@@ -58,30 +59,16 @@ def _cos_to(centers: Array, normals: Array, camera_position: Array) -> Array:
     return np.einsum("kc,kc->k", v, normals) / np.linalg.norm(v, axis=1)
 
 
-def _occluded(origins: Array, target: Array, vertices: Array, faces: NDArray[np.intp], skip_face: NDArray[np.intp],
-              chunk: int = 256) -> NDArray[np.bool_]:
-    """Segment origin_k -> target blocked by any triangle (Moller-Trumbore, vectorized; own face skipped)."""
-    v0 = vertices[faces[:, 0]]
-    e1 = vertices[faces[:, 1]] - v0
-    e2 = vertices[faces[:, 2]] - v0
-    out = np.zeros(len(origins), dtype=bool)
-    eps = 1e-9
-    for s in range(0, len(origins), chunk):
-        o = origins[s:s + chunk]
-        d = target[None, :] - o  # (n, 3), t in (0, 1) is on the segment
-        p = np.cross(d[:, None, :], e2[None, :, :])  # (n, F, 3)
-        det = np.einsum("fc,nfc->nf", e1, p)
-        ok = np.abs(det) > eps
-        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-        tv = o[:, None, :] - v0[None, :, :]
-        u = np.einsum("nfc,nfc->nf", tv, p) * inv
-        q = np.cross(tv, e1[None, :, :])
-        w = np.einsum("nc,nfc->nf", d, q) * inv
-        t = np.einsum("fc,nfc->nf", e2, q) * inv
-        hit = ok & (u >= 0) & (w >= 0) & (u + w <= 1) & (t > 1e-6) & (t < 1 - 1e-6)
-        hit[np.arange(len(o)), skip_face[s:s + chunk]] = False
-        out[s:s + chunk] = hit.any(axis=1)
-    return out
+def occluded_from(engine: RayEngine, points_mm: Array, target_mm: Array, own_face: NDArray[np.intp]
+                  ) -> NDArray[np.bool_]:
+    """True where a face of ``engine``'s mesh blocks the segment from a surface point (K, 3) on face
+    ``own_face`` (K,) to ``target_mm`` (3,) (a camera or light position): one occlusion ray per point
+    (:class:`estimation.rays.RayEngine`), started 1e-6 mesh diagonals off the point, passing through its own
+    face, and stopped as far short of the target."""
+    d = np.asarray(target_mm, dtype=np.float64).reshape(1, 3) - points_mm
+    dist = np.linalg.norm(d, axis=1)
+    eps = 1e-6 * engine.scale
+    return engine.occluded(points_mm, d, dist - eps, min_dist=eps, own_face=own_face)
 
 
 def patches_from_mesh(mesh: Any, camera: Any, *, cos_min: float = float(np.cos(np.radians(70.0))),
@@ -91,8 +78,9 @@ def patches_from_mesh(mesh: Any, camera: Any, *, cos_min: float = float(np.cos(n
     ``camera``: an object with ``center_mm`` (e.g. :class:`estimation.camera.PinholeCamera`, whose ``project``
     also restricts visibility to the image frame) or a camera position (3,) in mm. A patch is visible when it
     faces the camera with n.v >= ``cos_min`` (default cos 70 deg: grazing views are masked because dividing by
-    F_t(w_o) explodes there), lies in the frame, and (``occlusion``) nothing blocks the segment to the camera:
-    "auto" tests occlusion only for non-convex meshes (back-face culling is exact for convex ones).
+    F_t(w_o) explodes there), lies in the frame, and (``occlusion``) nothing blocks the segment to the camera
+    (one ray per patch, :func:`occluded_from`): "auto" tests occlusion only for non-convex meshes (back-face
+    culling is exact for convex ones).
     ``max_edge_mm`` subdivides the mesh first (``trimesh.remesh.subdivide_to_size``).
     """
     import trimesh
@@ -113,8 +101,8 @@ def patches_from_mesh(mesh: Any, camera: Any, *, cos_min: float = float(np.cos(n
     test = (not bool(mesh.is_convex)) if occlusion == "auto" else bool(occlusion)
     if test and visible.any():
         idx = np.flatnonzero(visible)
-        blocked = _occluded(centers[idx], cam_pos, np.asarray(mesh.vertices, dtype=np.float64),
-                            np.asarray(mesh.faces), idx)
+        engine = RayEngine(np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces))
+        blocked = occluded_from(engine, centers[idx], cam_pos, idx)
         visible[idx[blocked]] = False
     return Patches(centers, normals, areas, cos_out, visible)
 

@@ -1,0 +1,99 @@
+"""estimation.rays.RayEngine against trimesh's pure-python intersector (trimesh.ray.ray_triangle, float64, no
+Embree), against analytic answers, and both backends (Embree, numba BVH) against each other."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import trimesh
+
+from estimation.rays import RayEngine, embree_available
+
+BACKENDS = ["bvh"] + (["embree"] if embree_available() else [])
+
+
+def _random_rays(n: int, seed: int, spread: float = 25.0) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    o = rng.normal(size=(n, 3)) * spread
+    aim = rng.normal(size=(n, 3)) * 6.0              # aim near the mesh so that about half the rays hit
+    return o, aim - o
+
+
+def _two_meshes() -> list[trimesh.Trimesh]:
+    torus = trimesh.creation.torus(10.0, 4.0, major_sections=48, minor_sections=24)
+    a = trimesh.creation.box(extents=(8, 8, 8))
+    b = trimesh.creation.box(extents=(4, 4, 4))
+    b.apply_translation((3, 3, 6))                   # overlapping boxes: intersecting, non-convex union
+    return [torus, trimesh.util.concatenate([a, b])]
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+@pytest.mark.parametrize("which", [0, 1])
+def test_first_hit_matches_trimesh_pure_python(backend: str, which: int) -> None:
+    mesh = _two_meshes()[which]
+    o, d = _random_rays(4000, seed=which)
+    face, t = RayEngine(mesh.vertices, mesh.faces, backend=backend).first_hit(o, d)
+    ref = trimesh.ray.ray_triangle.RayMeshIntersector(mesh)
+    loc, iray, itri = ref.intersects_location(o, d, multiple_hits=True)
+    t_ref = np.full(len(o), np.inf)
+    f_ref = np.full(len(o), -1)
+    dist = np.einsum("ij,ij->i", loc - o[iray], d[iray] / np.linalg.norm(d[iray], axis=1, keepdims=True))
+    for r, f, s in zip(iray, itri, dist):     # nearest of all hits (intersects_first does not sort them)
+        if 0 < s < t_ref[r]:
+            t_ref[r], f_ref[r] = s, f
+    hit = f_ref >= 0
+    assert 0.2 < hit.mean() < 0.9                                     # the rays do test something
+    assert np.array_equal(face >= 0, hit)
+    np.testing.assert_allclose(t[hit], t_ref[hit], rtol=0, atol=1e-9 * 30)
+    same = face[hit] == f_ref[hit]
+    # a different face only where two faces meet at the same distance (a ray through a shared edge)
+    assert same.mean() > 0.995
+    assert np.all(np.isinf(t[~hit]))
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_backends_agree_and_known_answers(backend: str) -> None:
+    box = trimesh.creation.box(extents=(2.0, 2.0, 2.0))
+    eng = RayEngine(box.vertices, box.faces, backend=backend)
+    o = np.array([[0.1, 0.2, 5.0], [0.1, 0.2, 5.0], [3.0, 3.0, 5.0], [0.0, 0.0, 0.0]])
+    d = np.array([[0, 0, -2.0], [0, 0, 1.0], [0, 0, -1.0], [1.0, 0, 0]])
+    face, t = eng.first_hit(o, d)
+    np.testing.assert_allclose(t, [4.0, np.inf, np.inf, 1.0], atol=1e-6)  # from inside: the wall at x = 1
+    assert face[0] >= 0 and eng.face_normals[face[0]][2] > 0.99 and face[1] == face[2] == -1
+    # occlusion: the box blocks the segment through it, not one that stops short of it or starts beyond it
+    occ = eng.occluded([[0, 0, 5.0], [0, 0, 5.0], [0, 0, -1.0]], [[0, 0, -1.0]] * 3, [10.0, 3.9, 10.0])
+    assert occ.tolist() == [True, False, False]
+    # a point on the surface does not occlude itself (default min_dist), but the far wall behind it does
+    occ = eng.occluded([[0.2, 0.3, 1.0], [0.2, 0.3, 1.0]], [[0, 0, 1.0], [0, 0, -1.0]], [10.0, 10.0])
+    assert occ.tolist() == [False, True]
+    # shapes broadcast and come back as given
+    f2, t2 = eng.first_hit(np.zeros((2, 3, 3)) + [0, 0, 5.0], [0, 0, -1.0])
+    assert f2.shape == t2.shape == (2, 3)
+
+
+def test_embree_and_bvh_agree_on_a_large_nonconvex_mesh() -> None:
+    if not embree_available():
+        pytest.skip("embreex not installed")
+    rng = np.random.default_rng(3)
+    sphere = trimesh.creation.icosphere(subdivisions=5, radius=10.0)
+    v = sphere.vertices * (1 + 0.15 * np.sin(3 * sphere.vertices[:, :1]) * np.cos(2 * sphere.vertices[:, 1:2]))
+    o, d = _random_rays(20000, seed=5)
+    o += rng.normal(size=o.shape) * 0.01
+    fe, te = RayEngine(v, sphere.faces, backend="embree").first_hit(o, d)
+    fb, tb = RayEngine(v, sphere.faces, backend="bvh").first_hit(o, d)
+    assert np.mean(fe == fb) > 0.999
+    both = (fe >= 0) & (fb >= 0)
+    np.testing.assert_allclose(te[both], tb[both], atol=1e-4)
+
+
+def test_clear_errors() -> None:
+    box = trimesh.creation.box()
+    with pytest.raises(ValueError, match="backend must be"):
+        RayEngine(box.vertices, box.faces, backend="optix")
+    with pytest.raises(ValueError, match=r"\(V, 3\)"):
+        RayEngine(box.vertices[:, :2], box.faces)
+    with pytest.raises(ValueError, match="face indices"):
+        RayEngine(box.vertices, box.faces + 100)
+    with pytest.raises(ValueError, match="no faces"):
+        RayEngine(box.vertices, np.zeros((0, 3), int))
+    with pytest.raises(ValueError, match="non-zero"):
+        RayEngine(box.vertices, box.faces).first_hit([[0, 0, 5.0]], [[0, 0, 0.0]])
