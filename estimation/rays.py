@@ -6,11 +6,12 @@ single-image method (:func:`estimation.single_image.patches_from_mesh`), the sim
 
 Backends (``RayEngine(..., backend=...)``):
 
-- ``"embree"`` (default when the ``embreex`` package imports): Intel Embree's BVH through trimesh's ray interface
-  (``trimesh.ray.ray_pyembree.RayMeshIntersector.intersects_first``; Wald et al., "Embree: a kernel framework for
-  efficient CPU ray tracing", ACM TOG 33(4), 2014). Embree works in float32: trimesh shifts and scales the mesh
-  to a ~100-unit box first, so a hit is resolved to ~1e-7 of the mesh size. The distance is recomputed here in
-  float64 from the hit face's plane.
+- ``"embree"`` (default when the ``embreex`` package imports): Intel Embree's BVH (Wald et al., "Embree: a kernel
+  framework for efficient CPU ray tracing", ACM TOG 33(4), 2014) through ``embreex``, the binding behind trimesh's
+  ray interface, with trimesh's set-up (``trimesh.ray.ray_pyembree``: the mesh shifted and scaled to a ~100-unit
+  box, because Embree works in float32: distances come out within ~1e-6 of the mesh size, measured against float64). The scene is
+  queried directly rather than through ``RayMeshIntersector.intersects_first``, whose float64 copies and
+  re-normalization of the rays cost a third of the rate (benchmarks/meshes.py).
 - ``"bvh"``: this module's own median-split bounding-volume hierarchy traversed by a numba kernel with the
   Moller-Trumbore test (Moller & Trumbore, "Fast, minimum storage ray-triangle intersection", J. Graphics Tools
   2(1), 1997), in float64: the fallback where Embree is not installed, and an independent check of it.
@@ -50,7 +51,7 @@ class RayEngine:
     >>> import trimesh
     >>> box = trimesh.creation.box(extents=(2.0, 2.0, 2.0))
     >>> face, dist = RayEngine(box.vertices, box.faces).first_hit([[0.0, 0.0, 5.0]], [[0.0, 0.0, -1.0]])
-    >>> float(dist[0])
+    >>> round(float(dist[0]), 5)
     4.0
     """
 
@@ -74,16 +75,22 @@ class RayEngine:
         self.backend: str = backend
         self.vertices, self.faces = v, f
         tri = v[f]
-        self._v0 = tri[:, 0]
         n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         self.face_normals: FloatArray = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)  # (F, 3)
         self.scale: float = float(np.linalg.norm(v.max(axis=0) - v.min(axis=0)))   # bounding-box diagonal
         if backend == "embree":
-            import trimesh
-            from trimesh.ray.ray_pyembree import RayMeshIntersector
+            from embreex import rtcore_scene
+            from embreex.mesh_construction import TriangleMesh
 
-            self._embree = RayMeshIntersector(trimesh.Trimesh(v, f, process=False, validate=False))
-            self._embree.intersects_first(v[:1] + 1.0, v[:1])   # build the scene now, not in the first query
+            # as trimesh.ray.ray_pyembree._EmbreeWrap: shift to the box corner, scale to a ~100-unit box
+            self._origin = v.min(axis=0)
+            self._center = 0.5 * (v.min(axis=0) + v.max(axis=0))
+            self._radius = 0.5 * self.scale
+            self._to_box = 100.0 / max(self.scale, 1e-300)
+            self._scene = rtcore_scene.EmbreeScene()
+            TriangleMesh(scene=self._scene, vertices=((v - self._origin) * self._to_box).astype(np.float32),
+                         indices=f.astype(np.int32))
+            self._scene.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32))   # commit (build) now
         else:
             self._bvh = _build_bvh(tri, _LEAF_SIZE)
 
@@ -101,21 +108,31 @@ class RayEngine:
         o, d, shape = _rays(origins, dirs)
         if len(o) == 0:
             return np.empty(shape, np.intp), np.empty(shape)
-        start = o + float(min_dist) * d if min_dist else o
+        if min_dist:
+            o = o + float(min_dist) * d
         if self.backend == "embree":
-            face = np.asarray(self._embree.intersects_first(start, d), dtype=np.intp)
-            hit = face >= 0
-            t = np.full(len(o), np.inf)
-            fh = face[hit]
-            den = np.einsum("ij,ij->i", d[hit], self.face_normals[fh])
-            with np.errstate(divide="ignore", invalid="ignore"):
-                th = np.einsum("ij,ij->i", self._v0[fh] - o[hit], self.face_normals[fh]) / den
-            # a hit parallel to its face's plane (den ~ 0) has no plane distance: keep it at min_dist
-            t[hit] = np.where(np.isfinite(th), np.maximum(th, min_dist), min_dist)
+            # float32 keeps ~7 digits of the scaled coordinates: rays from far away (a camera metres off, an
+            # orthographic camera's ray start) first advance in float64 to the mesh's bounding sphere
+            ob = o - self._center
+            t0 = np.maximum(-np.einsum("ij,ij->i", ob, d) - self._radius, 0.0)
+            if np.any(t0 > 0):
+                ob += t0[:, None] * d
+            else:
+                t0 = None
+            ob += self._center - self._origin
+            o32 = np.empty(ob.shape, np.float32)
+            np.multiply(ob, self._to_box, out=o32, casting="unsafe")
+            res = self._scene.run(o32, d.astype(np.float32), output=1)
+            face = res["primID"].astype(np.intp)
+            t = np.multiply(res["tfar"], 1.0 / self._to_box, dtype=np.float64)
+            if t0 is not None:
+                t += t0
+            t[face < 0] = np.inf
         else:
             boxes, nodes, tris, order = self._bvh
-            face, t = _bvh_first_hit(boxes, nodes, tris, order, start, d)
-            t = np.where(face >= 0, t + float(min_dist), np.inf)
+            face, t = _bvh_first_hit(boxes, nodes, tris, order, np.array(o, order="C"), np.array(d, order="C"))
+        if min_dist:
+            t += float(min_dist)
         return face.reshape(shape), t.reshape(shape)
 
     def occluded(self, origins: npt.ArrayLike, dirs: npt.ArrayLike, max_dist: npt.ArrayLike, *,
@@ -146,12 +163,14 @@ def _rays(origins: npt.ArrayLike, dirs: npt.ArrayLike) -> tuple[FloatArray, Floa
     if o.shape[-1:] != (3,):
         raise ValueError(f"ray origins and directions must be (..., 3); got {np.shape(origins)} and {np.shape(dirs)}")
     shape = o.shape[:-1]
-    o = np.ascontiguousarray(o.reshape(-1, 3))
+    o = o.reshape(-1, 3)
     d = d.reshape(-1, 3)
-    norm = np.linalg.norm(d, axis=1, keepdims=True)
-    if np.any(~(norm > 0)) or not np.all(np.isfinite(o)):
+    norm2 = np.einsum("ij,ij->i", d, d)
+    if not (np.all(norm2 > 0) and np.isfinite(norm2.sum()) and np.isfinite(o.sum())):
         raise ValueError("ray directions must be finite and non-zero, origins finite")
-    return o, np.ascontiguousarray(d / norm), shape
+    if np.all(np.abs(norm2 - 1.0) < 1e-12):      # unit already (camera pixel rays): no copy
+        return o, d, shape
+    return o, d / np.sqrt(norm2)[:, None], shape
 
 
 # ---------------------------------------------------------------------------------------------- numba BVH
