@@ -15,8 +15,8 @@ import numpy as np
 Array = np.ndarray
 
 
-def occluded_brute_force(origins: Array, target: Array, vertices: Array, faces: NDArray[np.intp], skip_face: NDArray[np.intp],
-              chunk: int = 256) -> NDArray[np.bool_]:
+def occluded_brute_force(origins: Array, target: Array, vertices: Array, faces: Array, skip_face: Array,
+                         chunk: int = 256) -> Array:
     """Segment origin_k -> target blocked by any triangle (Moller-Trumbore, vectorized; own face skipped)."""
     v0 = vertices[faces[:, 0]]
     e1 = vertices[faces[:, 1]] - v0

@@ -7,8 +7,9 @@ into the body: non-convex, with a hole), ~100k faces (``--quick``: ~26k). A pinh
 
 1. **Rays per second** on the same random rays aimed at the mesh (about half hit): Embree's raw rate (embreex
    scene built directly from float32 arrays, ``EmbreeScene.run`` on float32 rays prepared in advance — the
-   floor no wrapper can beat), ``RayEngine.first_hit`` (trimesh's interface over Embree, plus float64 distances:
-   what the package uses; acceptance: at least half the raw rate) and the numba BVH fallback.
+   floor no wrapper can beat), ``RayEngine.first_hit`` (faces and distances: what the package uses; acceptance:
+   at least half the raw rate), trimesh's own Embree interface (``intersects_first``: faces only;
+   ``intersects_location``: faces and hit points) and the numba BVH fallback.
 2. **Patches + visibility** (the geometry stage of ``rig estimate single-image``): the pixel-to-face map of the
    camera (``rig.estimate.pixel_faces``, one ray per pixel; engine build included) and the camera visibility of
    ~10k patches (``patches_from_mesh`` on the same shape tessellated to ~10k faces, occlusion on; and the
@@ -103,6 +104,13 @@ def rates(mesh: trimesh.Trimesh, n_rays: int, repeats: int) -> dict[str, Any]:
         t_raw, raw = _best(lambda: scene.run(o32, d32), repeats)
         eng = RayEngine(mesh.vertices, mesh.faces, backend="embree")
         t_eng, (face, _) = _best(lambda: eng.first_hit(o, d), repeats)
+        from trimesh.ray.ray_pyembree import RayMeshIntersector
+
+        tm = RayMeshIntersector(mesh)
+        tm.intersects_first(o[:10], d[:10])
+        t_tm, _ = _best(lambda: tm.intersects_first(o, d), repeats)
+        t_tml, _ = _best(lambda: tm.intersects_location(o, d, multiple_hits=False), repeats)
+        out.update(trimesh_first_rays_per_s=n_rays / t_tm, trimesh_location_rays_per_s=n_rays / t_tml)
         out.update(embree_raw_rays_per_s=n_rays / t_raw, engine_rays_per_s=n_rays / t_eng,
                    engine_over_raw=t_raw / t_eng, hit_fraction=float(np.mean(face >= 0)),
                    same_face_as_raw=float(np.mean(face == raw)))
@@ -139,8 +147,8 @@ def visibility(mesh: trimesh.Trimesh, patch_mesh: trimesh.Trimesh, cam: PinholeC
     rng = np.random.default_rng(0)
     pick = rng.choice(o.shape[0] * o.shape[1], size=subset, replace=False)
     tri = np.asarray(mesh.triangles, float)
-    t_sub, (t_bf, f_bf, _, _) = _best(lambda: hits_brute_force(tri, o.reshape(-1, 3)[pick], d.reshape(-1, 3)[pick]),
-                                      1)
+    t_sub, (t_bf, f_bf, _, _) = _best(
+        lambda: hits_brute_force(tri, o.reshape(-1, 3)[pick], d.reshape(-1, 3)[pick]), 1)
     out["pixel_brute_force_s_extrapolated"] = t_sub * out["pixels"] / subset
     f_bf = np.where(np.isfinite(t_bf), f_bf, -1)
     out["pixel_brute_force_agrees"] = float(np.mean(f_bf == faces_new.reshape(-1)[pick]))
@@ -196,7 +204,9 @@ def main(argv: list[str] | None = None) -> int:
     r = rates(mesh, 200_000 if quick else 1_000_000, repeats)
     if "embree_raw_rays_per_s" in r:
         say(f"rays/s  Embree raw {r['embree_raw_rays_per_s'] / 1e6:.2f} M | RayEngine (embree) "
-            f"{r['engine_rays_per_s'] / 1e6:.2f} M = {r['engine_over_raw']:.2f} x raw (target >= 0.5) | numba BVH "
+            f"{r['engine_rays_per_s'] / 1e6:.2f} M = {r['engine_over_raw']:.2f} x raw (target >= 0.5) | trimesh "
+            f"intersects_first (faces only) {r['trimesh_first_rays_per_s'] / 1e6:.2f} M, intersects_location "
+            f"(faces + points) {r['trimesh_location_rays_per_s'] / 1e6:.2f} M | numba BVH "
             f"{r['bvh_rays_per_s'] / 1e6:.2f} M  ({r['rays']} rays, {r['hit_fraction']:.0%} hit, same face as raw "
             f"{r['same_face_as_raw']:.4%})")
     else:
@@ -206,20 +216,23 @@ def main(argv: list[str] | None = None) -> int:
         f"{v['painters_s']:.3f} s ({v['painters_pixels_differing']} of {v['object_pixels']} object px differ: "
         f"{v['painters_pixels_hidden_face']} show a face > 0.3 mm behind the visible surface, "
         f"{v['painters_pixels_other_face'] - v['painters_pixels_hidden_face']} a neighbouring face, "
-        f"{v['painters_pixels_object_mismatch']} object/background) | every pixel x every face {v['pixel_brute_force_s_extrapolated']:.0f} s "
+        f"{v['painters_pixels_object_mismatch']} object/background) | every pixel x every face "
+        f"{v['pixel_brute_force_s_extrapolated']:.0f} s "
         f"(extrapolated; agrees {v['pixel_brute_force_agrees']:.1%}) -> "
         f"{v['pixel_brute_force_s_extrapolated'] / v['pixel_map_s']:.0f}x")
     say(f"patches + visibility ({v['patches']} patches, own mesh, occlusion on): {v['patches_s']:.3f} s | brute force "
         f"{v['patches_brute_force_s_extrapolated']:.1f} s (extrapolated) -> "
         f"{v['patches_brute_force_s_extrapolated'] / v['patches_s']:.0f}x")
-    say(f"occlusion of {v['occlusion_patches']} patch centres vs all {v['faces']} faces: {v['occlusion_full_mesh_s']:.3f} s "
+    say(f"occlusion of {v['occlusion_patches']} patch centres vs all {v['faces']} faces: "
+        f"{v['occlusion_full_mesh_s']:.3f} s "
         f"(+ engine build {v['engine_build_s']:.3f} s) | brute force "
         f"{v['occlusion_full_mesh_brute_force_s_extrapolated']:.0f} s (extrapolated; agrees "
         f"{v['occlusion_agrees_with_brute_force']:.1%}) -> "
         f"{v['occlusion_full_mesh_brute_force_s_extrapolated'] / v['occlusion_full_mesh_s']:.0f}x")
     say(f"visibility total (pixel map + build + patch occlusion): {v['visibility_s']:.3f} s | brute force "
         f"{v['visibility_brute_force_s_extrapolated']:.0f} s (extrapolated) -> "
-        f"{v['visibility_brute_force_s_extrapolated'] / v['visibility_s']:.0f}x; run {time.perf_counter() - t_start:.1f} s")
+        f"{v['visibility_brute_force_s_extrapolated'] / v['visibility_s']:.0f}x; "
+        f"run {time.perf_counter() - t_start:.1f} s")
     data = {"quick": quick, "load_average": load, "rates": r, "visibility": v}
     if a.json == "-":
         print(json.dumps(data, indent=1))

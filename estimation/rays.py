@@ -9,9 +9,10 @@ Backends (``RayEngine(..., backend=...)``):
 - ``"embree"`` (default when the ``embreex`` package imports): Intel Embree's BVH (Wald et al., "Embree: a kernel
   framework for efficient CPU ray tracing", ACM TOG 33(4), 2014) through ``embreex``, the binding behind trimesh's
   ray interface, with trimesh's set-up (``trimesh.ray.ray_pyembree``: the mesh shifted and scaled to a ~100-unit
-  box, because Embree works in float32: distances come out within ~1e-6 of the mesh size, measured against float64). The scene is
-  queried directly rather than through ``RayMeshIntersector.intersects_first``, whose float64 copies and
-  re-normalization of the rays cost a third of the rate (benchmarks/meshes.py).
+  box, because Embree works in float32: distances come out within ~1e-6 of the mesh size of float64 ones). The
+  scene is queried directly, with Embree's distance output, rather than through ``RayMeshIntersector``, whose
+  call giving faces and hit points (``intersects_location``) ran at 0.51 x Embree's raw rate, this at 0.69 x
+  (benchmarks/meshes.py, docs/visibility.md).
 - ``"bvh"``: this module's own median-split bounding-volume hierarchy traversed by a numba kernel with the
   Moller-Trumbore test (Moller & Trumbore, "Fast, minimum storage ray-triangle intersection", J. Graphics Tools
   2(1), 1997), in float64: the fallback where Embree is not installed, and an independent check of it.
@@ -33,9 +34,9 @@ _LEAF_SIZE = 4
 
 
 def embree_available() -> bool:
-    """True when trimesh's Embree ray interface (package ``embreex``) imports."""
+    """True when Embree's Python binding (package ``embreex``) imports."""
     try:
-        import trimesh.ray.ray_pyembree  # noqa: F401
+        from embreex import rtcore_scene  # noqa: F401
     except ImportError:
         return False
     return True
