@@ -100,3 +100,31 @@ def test_clear_errors() -> None:
         RayEngine(box.vertices, np.zeros((0, 3), int))
     with pytest.raises(ValueError, match="non-zero"):
         RayEngine(box.vertices, box.faces).first_hit([[0, 0, 5.0]], [[0, 0, 0.0]])
+
+
+def test_auto_falls_back_to_the_numba_bvh_without_embreex() -> None:
+    """A fresh interpreter in which ``import embreex`` fails: "auto" picks the BVH, "embree" says what to install,
+    and the pixel map still comes out (the fallback is the same engine, not a mock)."""
+    import subprocess
+    import sys
+
+    code = ("import sys; sys.modules['embreex'] = None\n"
+            "import trimesh\n"
+            "from estimation.rays import RayEngine, embree_available\n"
+            "from estimation.camera import PinholeCamera\n"
+            "from rig.estimate import pixel_faces\n"
+            "b = trimesh.creation.box()\n"
+            "assert not embree_available() and RayEngine(b.vertices, b.faces).backend == 'bvh'\n"
+            "try:\n"
+            "    RayEngine(b.vertices, b.faces, backend='embree')\n"
+            "except ImportError as e:\n"
+            "    assert 'pip install embreex' in str(e)\n"
+            "else:\n"
+            "    raise AssertionError('no ImportError')\n"
+            "cam = PinholeCamera.looking_at(width_px=8, height_px=6, fx_px=60.0, position_mm=(0, -5.0, 0),\n"
+            "                               target_mm=(0, 0, 0))\n"
+            "m = pixel_faces(b, cam)\n"
+            "assert m.shape == (6, 8) and (m >= 0).all()\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                          cwd=str(__import__("pathlib").Path(__file__).resolve().parents[2]))
+    assert proc.returncode == 0, proc.stderr
