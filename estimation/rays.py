@@ -154,8 +154,9 @@ class RayEngine:
                 again = np.flatnonzero((face == own) & (t < md))
                 if len(again) == 0:
                     break
-                f2, t2 = self.first_hit(o[again], d[again], min_dist=float(np.max(t[again])) + eps)
-                face[again], t[again] = f2, t2
+                skip = t[again] + eps                       # per ray: just beyond its own face's hit
+                f2, t2 = self.first_hit(o[again] + skip[:, None] * d[again], d[again])
+                face[again], t[again] = f2, t2 + skip
         return (t < md).reshape(shape)
 
 

@@ -67,6 +67,12 @@ def test_backends_agree_and_known_answers(backend: str) -> None:
     # a point on the surface does not occlude itself (default min_dist), but the far wall behind it does
     occ = eng.occluded([[0.2, 0.3, 1.0], [0.2, 0.3, 1.0]], [[0, 0, 1.0], [0, 0, -1.0]], [10.0, 10.0])
     assert occ.tolist() == [False, True]
+    # own_face: a ray's own face is passed through wherever it is met; what lies beyond it still counts
+    o2, d2 = np.array([[0.1, 0.2, -5.0]] * 3), np.array([[0, 0, 1.0]] * 3)
+    bottom, _ = eng.first_hit(o2, d2)                                 # the face at z = -1 (t = 4)
+    occ = eng.occluded(o2, d2, [10.0, 5.5, 3.0], own_face=bottom)     # the top face is at t = 6
+    assert occ.tolist() == [True, False, False]
+    assert eng.occluded(o2, d2, [5.5, 5.5, 5.5]).tolist() == [True] * 3   # without own_face the bottom counts
     # shapes broadcast and come back as given
     f2, t2 = eng.first_hit(np.zeros((2, 3, 3)) + [0, 0, 5.0], [0, 0, -1.0])
     assert f2.shape == t2.shape == (2, 3)
