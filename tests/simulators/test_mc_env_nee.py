@@ -4,7 +4,8 @@ A map with a small bright sun (3.5 deg Gaussian lobe, ~400x the sky) over a dim 
 sun, so the plain path tracer is ~55 % noisy per pixel at 256 spp; connecting every collision to a sun pixel (drawn
 by power) through the refracting boundary brings that to ~4-5 %. Both estimate the same image: the sums over the
 object agree within 4 combined standard errors (measured at 16384 / 1024 spp: box eta 1.3 0.996 +- 0.015, box eta 1
-0.991 +- 0.012, icosphere mesh eta 1.5 0.988 +- 0.017). Before the renderer split escaping paths into straight
+0.991 +- 0.012, 320-triangle icosphere mesh eta 1.5 0.988 +- 0.017; a mesh of more than
+ENV_NEE_MAX_FLAT_FACES flat faces now path-traces, the icosahedron stands in for it). Before the renderer split escaping paths into straight
 exits (whose sun pixels the connection covers) and exits after an internal reflection (which still look the sun up),
 the box at eta 1.3 came out 3.4 % dark (2.8 standard errors): the test would catch that.
 """
@@ -34,7 +35,7 @@ def sun_map(rows: int = 32, sigma_deg: float = 3.5, gain: float = 400.0) -> np.n
 CAMERA = PinholeCamera.looking_at(width_px=10, height_px=10, fx_px=10 * 450 / (1.9 * 20), position_mm=(250, -300, 220),
                                   target_mm=(0, 0, 0))
 CASES = {"box-eta1.3": (lambda: Box((-10,) * 3, (10,) * 3), 1.3), "box-eta1.0": (lambda: Box((-10,) * 3, (10,) * 3), 1.0),
-         "icosphere-eta1.5": (lambda: Mesh(trimesh.creation.icosphere(2, radius=10.0)), 1.5)}
+         "icosahedron-eta1.5": (lambda: Mesh(trimesh.creation.icosphere(0, radius=10.0)), 1.5)}
 
 
 def test_table_holds_the_sun_and_the_rest_the_sky():
@@ -66,3 +67,17 @@ def test_sun_connections_agree_with_path_tracing_and_cut_the_noise(name):
     pt256 = render(make(), med, CAMERA, light, spp=256, seed=13, env_nee=False)
     rel = lambda im: np.median(im.stderr[m, 0] / im.radiance[m, 0])  # noqa: E731
     assert rel(nee) < 0.2 * rel(pt256)
+
+
+def test_many_faced_refracting_mesh_path_traces():
+    """Above ENV_NEE_MAX_FLAT_FACES flat faces a refracting mesh's connections (a scan of every face) cost more than
+    they save (measured 5x the path tracer's time on the 320-triangle icosphere): env_nee is then not used."""
+    from simulators.mc.render import ENV_NEE_MAX_FLAT_FACES
+
+    mesh = trimesh.creation.icosphere(2, radius=10.0)
+    assert len(mesh.faces) > ENV_NEE_MAX_FLAT_FACES
+    light = EnvironmentMap(sun_map(), max_size=32)
+    med = [Medium.from_reduced(0.74, 0.032, eta=1.5)]
+    a = render(Mesh(mesh), med, CAMERA, light, spp=8, seed=3, env_nee=True)
+    b = render(Mesh(mesh), med, CAMERA, light, spp=8, seed=3, env_nee=False)
+    np.testing.assert_array_equal(a.radiance, b.radiance)
