@@ -370,7 +370,7 @@ def test_cli_serves_alone_until_ctrl_c():
         finally:
             drv.close()
         proc.send_signal(signal.SIGINT)
-        assert proc.wait(timeout=5) == 0
+        assert proc.wait(timeout=20) == 0  # (5 s timed out once in a loaded full run; alone it exits in < 1 s)
     finally:
         if proc.poll() is None:
             proc.kill()
