@@ -95,6 +95,8 @@ def _flat_likelihood(rendered: list[tuple[Array, Array]], obs: Array, scale: Arr
         obj = np.stack([_huber_sum((obs - q) / scale) for _, q in rendered])  # (renders, C)
     pts = np.exp(np.stack([t for t, _ in rendered]))  # (renders, C, 2)
     for c in range(n_ch):
+        if not np.isfinite(obj[:, c]).any():  # (no render compared: nothing to read; nanmin would warn)
+            continue
         ok = np.isfinite(obj[:, c]) & (obj[:, c] <= np.nanmin(obj[:, c]) + RESOLVED_OBJECTIVE)
         span = pts[ok, c].max(axis=0) / pts[ok, c].min(axis=0) if ok.sum() >= 2 else np.ones(2)
         msg = []
