@@ -10,7 +10,12 @@ from pathlib import Path
 
 from drivers.errors import RigError
 
-from .config import default_config_text, load_config
+
+def load_config(path: Path | None):
+    """rig.config.load_config, imported on first use: the schema (pydantic) takes ~0.4 s to build, and every
+    long command must say something on stderr within 2 s of its start (issue 18), also on a loaded machine."""
+    from .config import load_config as _load
+    return _load(path)
 
 
 def _add_config(p: argparse.ArgumentParser) -> None:
@@ -312,10 +317,12 @@ def _cmd_config(args: argparse.Namespace) -> int:
             print(f"{args.check}: valid rig config '{out['rig']}' (schema, [calibration], poses, exposures; the plan "
                   f"of every estimator: {b['frames']} frames, peak {b['max_current_a']:.2f} A of "
                   f"{b['max_total_current_a']:g} A, {b['peak_temperature_c']:.1f} C of {b['over_temperature_c']:g} C)")
-    elif args.json:
-        _json_out({"ok": True, "file": "<package>/rig/data/default_rig.toml", "text": default_config_text()})
     else:
-        print(default_config_text(), end="")
+        from .config import default_config_text
+        if args.json:
+            _json_out({"ok": True, "file": "<package>/rig/data/default_rig.toml", "text": default_config_text()})
+        else:
+            print(default_config_text(), end="")
     return 0
 
 
@@ -350,12 +357,21 @@ def _common() -> argparse.ArgumentParser:
     return p
 
 
+class _Version(argparse.Action):
+    """``--version``, reading the installed version only when asked (importlib.metadata costs ~0.4 s)."""
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: object,
+                 option_string: str | None = None) -> None:
+        from . import __version__
+        print(f"rig (sssrig) {__version__}")
+        parser.exit()
+
+
 def build_parser() -> argparse.ArgumentParser:
-    from . import __version__
     common = _common()
     parser = _Parser(prog="rig", parents=[common],
                      description="sssrig: light-stage acquisition and subsurface-scattering estimation")
-    parser.add_argument("--version", action="version", version=f"rig (sssrig) {__version__}")
+    parser.add_argument("--version", action=_Version, nargs=0, help="show the version and exit")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_Parser)
     _orig_add = sub.add_parser
 
