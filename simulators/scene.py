@@ -27,6 +27,7 @@ from estimation.camera import PinholeCamera, intersect_sphere
 from estimation.forward import diffuse_exitance
 from estimation.rays import RayEngine
 from estimation.fresnel import fresnel_reflectance, fresnel_transmittance
+from estimation.shadows import is_convex_mesh, point_light_visibility
 
 if TYPE_CHECKING:
     from .mc_capture import MCSettings
@@ -67,10 +68,12 @@ class SphereObject:
 
 
 def led_irradiance(points_mm: FloatArray, normals: FloatArray, led_positions_mm: FloatArray,
-                   led_radiant_intensity: FloatArray, eta: float, *, transmitted: bool = True
-                   ) -> FloatArray:
-    """Irradiance (K, C) from point-like LEDs: sum_l I_l max(0, n.w) / d^2, times F_t(eta, n.w) if
-    ``transmitted`` (the seed's c_k per unit area). Convex object: no self-shadowing beyond n.w."""
+                   led_radiant_intensity: FloatArray, eta: float, *, transmitted: bool = True,
+                   occluder: RayEngine | None = None) -> FloatArray:
+    """Irradiance (K, C) from point-like LEDs: sum_l V_kl I_l max(0, n.w) / d^2, times F_t(eta, n.w) if
+    ``transmitted`` (the seed's c_k per unit area). V_kl: without ``occluder`` 1 (no self-shadowing beyond n.w,
+    exact for a convex object); with one, the cast shadow of that mesh (one shadow ray per point and lit LED,
+    :func:`estimation.shadows.point_light_visibility`)."""
     lit = np.flatnonzero(np.any(led_radiant_intensity > 0, axis=1))
     out = np.zeros((len(points_mm), led_radiant_intensity.shape[1]))
     for start in range(0, len(lit), 64):
@@ -81,14 +84,17 @@ def led_irradiance(points_mm: FloatArray, normals: FloatArray, led_positions_mm:
         w = cos / dist2
         if transmitted:
             w = w * fresnel_transmittance(eta, cos)
+        if occluder is not None:
+            w = w * point_light_visibility(occluder, points_mm, normals, led_positions_mm[idx])
         out += w @ led_radiant_intensity[idx]
     return out
 
 
 def specular_radiance(points_mm: FloatArray, normals: FloatArray, view: FloatArray,
                       led_positions_mm: FloatArray, led_radiant_intensity: FloatArray, eta: float,
-                      roughness: float) -> FloatArray:
-    """GGX microfacet reflection of the LEDs (Walter et al. 2007), (P, C)."""
+                      roughness: float, *, occluder: RayEngine | None = None) -> FloatArray:
+    """GGX microfacet reflection of the LEDs (Walter et al. 2007), (P, C); LEDs hidden by ``occluder`` (a cast
+    shadow, as in :func:`led_irradiance`) reflect nothing."""
     a2 = roughness ** 4  # alpha = roughness^2
     lit = np.flatnonzero(np.any(led_radiant_intensity > 0, axis=1))
     out = np.zeros((len(points_mm), led_radiant_intensity.shape[1]))
@@ -107,7 +113,10 @@ def specular_radiance(points_mm: FloatArray, normals: FloatArray, view: FloatArr
         G = (cos_i / (cos_i * (1 - k) + k)) * (cos_o / (cos_o * (1 - k) + k))[:, None]
         F = fresnel_reflectance(eta, np.clip(np.sum(h * view[:, None, :], axis=-1), 0.0, 1.0))
         brdf = D * G * F / (4.0 * cos_o[:, None] * np.maximum(cos_i, 1e-9))
-        out += (brdf * cos_i / dist2) @ led_radiant_intensity[idx]
+        w = brdf * cos_i / dist2
+        if occluder is not None:
+            w = w * point_light_visibility(occluder, points_mm, normals, led_positions_mm[idx])
+        out += w @ led_radiant_intensity[idx]
     return out
 
 
@@ -291,6 +300,9 @@ class MeshObject:
     Patches: the mesh faces after ``subdivisions`` midpoint subdivisions. Pixel normals: the vertex normals
     interpolated barycentrically over the face the ray hits (a smooth shading normal, like a scanned mesh's).
     Subsurface transport: :func:`estimation.forward.diffuse_exitance` over the patches, as for the sphere.
+    ``shadows``: the mesh casts shadows of the LEDs on its patches and pixels (shadow rays,
+    :mod:`estimation.shadows`; "fast" render mode — the Monte Carlo mode traces them anyway): "auto" (default) when
+    it is not convex (:func:`estimation.shadows.is_convex_mesh`), True, or False (max(0, n.l) only, as before).
     """
 
     mesh: trimesh.Trimesh
@@ -299,8 +311,32 @@ class MeshObject:
     eta: float
     subdivisions: int = 0
     specular_roughness: float = 0.15
+    shadows: bool | str = "auto"
     _engine: RayEngine | None = field(default=None, repr=False, compare=False)
     _engine_key: int | None = field(default=None, repr=False, compare=False)
+    _convex: bool | None = field(default=None, repr=False, compare=False)
+
+    def _ray_engine(self) -> RayEngine:
+        key = hash(self.mesh)    # trimesh's hash of the vertex and face data: an edited mesh gets a new engine
+        if self._engine is None or self._engine_key != key:
+            self._engine = RayEngine(np.asarray(self.mesh.vertices, float), np.asarray(self.mesh.faces))
+            self._engine_key = key
+            self._convex = None
+        return self._engine
+
+    def shadow_engine(self) -> RayEngine | None:
+        """The ray engine that casts this mesh's shadows, or None (shadows off, or "auto" on a convex mesh)."""
+        if not (self.shadows == "auto" or isinstance(self.shadows, (bool, np.bool_))):
+            raise ValueError(f"MeshObject.shadows must be 'auto', True or False; got {self.shadows!r}")
+        if self.shadows is False:
+            return None
+        eng = self._ray_engine()
+        if self.shadows == "auto":
+            if self._convex is None:
+                self._convex = is_convex_mesh(self.mesh.vertices, self.mesh.faces)
+            if self._convex:
+                return None
+        return eng
 
     def patches(self) -> tuple[FloatArray, FloatArray, FloatArray]:
         m = self.mesh
@@ -313,11 +349,7 @@ class MeshObject:
                                                                      FloatArray, FloatArray]:
         """Nearest hit of each ray (M, 3) (unit ``dirs``): t (inf if none), face index (-1 if none), barycentrics
         (b1, b2) of the hit point on that face (0 for a miss); first hits by :class:`estimation.rays.RayEngine`."""
-        key = hash(self.mesh)    # trimesh's hash of the vertex and face data: an edited mesh gets a new engine
-        if self._engine is None or self._engine_key != key:
-            self._engine = RayEngine(np.asarray(self.mesh.vertices, float), np.asarray(self.mesh.faces))
-            self._engine_key = key
-        face, t = self._engine.first_hit(origins, dirs, min_dist=1e-9)
+        face, t = self._ray_engine().first_hit(origins, dirs, min_dist=1e-9)
         hit = face >= 0
         tri = np.asarray(self.mesh.triangles, float)[face[hit]]
         p = origins[hit] + t[hit, None] * dirs[hit]
@@ -360,15 +392,21 @@ class MeshObject:
 def _patch_exitance(obj: SphereObject | MeshObject, points_mm: FloatArray, led_positions_mm: FloatArray,
                     emissions: list[FloatArray]) -> list[FloatArray]:
     centers, normals, areas = obj.patches()
+    occ = _shadow_engine(obj)
     out = []
     for em in emissions:
-        e_t = led_irradiance(centers, normals, led_positions_mm, em, obj.eta)
+        e_t = led_irradiance(centers, normals, led_positions_mm, em, obj.eta, occluder=occ)
         out.append(diffuse_exitance(points_mm, centers, areas, e_t, np.asarray(obj.sigma_s_prime_per_mm),
                                     np.asarray(obj.sigma_a_per_mm), obj.eta))
     return out
 
 
 SceneObject = SphereObject | BumpySlabObject | MeshObject
+
+
+def _shadow_engine(obj: object) -> RayEngine | None:
+    """The engine casting ``obj``'s shadows (a non-convex :class:`MeshObject` with shadows on), else None."""
+    return obj.shadow_engine() if isinstance(obj, MeshObject) else None
 
 
 def _exitance(obj: SceneObject, points_mm: FloatArray, led_positions_mm: FloatArray,
@@ -425,7 +463,8 @@ def render_object(obj: SceneObject, camera: PinholeCamera, led_positions_mm: Flo
         diffuse = fresnel_transmittance(obj.eta, cos_o)[:, None] / np.pi * b
     spec = 0.0
     if include_specular and polarization != Polarization.CROSS:
-        spec = specular_radiance(p, n, v, led_positions_mm, led_radiant_intensity, obj.eta, obj.specular_roughness)
+        spec = specular_radiance(p, n, v, led_positions_mm, led_radiant_intensity, obj.eta, obj.specular_roughness,
+                                 occluder=_shadow_engine(obj))
     img[hit] = k * diffuse + spec
     return RenderResult(img, hit, se_img)
 
@@ -539,7 +578,8 @@ def render_gradient_capture(obj: SceneObject, camera: PinholeCamera, led_positio
             img = np.zeros((H, W, 3))
             val = 0.5 * ft * b + ambient_radiance
             if pol == "parallel" and hit.any():
-                val = val + specular_radiance(p, n, v, pos, em, obj.eta, obj.specular_roughness)
+                val = val + specular_radiance(p, n, v, pos, em, obj.eta, obj.specular_roughness,
+                                              occluder=_shadow_engine(obj))
             img[hit] = val
             frames[(name, pol)] = finish(img)
     normals = np.full((H, W, 3), np.nan)
