@@ -52,9 +52,11 @@ SHADOW_OFFSET = 1e-5
 ENV_SHADOW_ROWS = 16
 #: environment-map pixels brighter than this many times the map's mean radiance get their own shadow rays
 ENV_BRIGHT_FACTOR = 4.0
-#: ... at most this many of them (the brightest), each with ENV_BRIGHT_SUB x ENV_BRIGHT_SUB rays over the pixel
+#: ... at most this many of them (the brightest), each with s x s shadow rays spread over the pixel, s the
+#: pixel's height over ENV_BRIGHT_STEP_DEG (rounded up, at most 8): the penumbra of a bright source is resolved
+#: to about half a degree
 ENV_BRIGHT_MAX = 64
-ENV_BRIGHT_SUB = 3
+ENV_BRIGHT_STEP_DEG = 0.5
 _CHUNK_ELEMENTS = 4_000_000   # patches x map pixels per block of the environment computation
 
 
@@ -129,6 +131,12 @@ def direction_visibility(engine: RayEngine, points_mm: npt.ArrayLike, normals: n
     return vis
 
 
+def bright_subdivisions(rows: int) -> int:
+    """Shadow rays per bright pixel side (s x s rays) of a lat-long map of ``rows`` rows: pixel height over
+    :data:`ENV_BRIGHT_STEP_DEG`, rounded up, 1..8 (6 at 64 rows, 8 at 32)."""
+    return int(min(8, max(1, np.ceil(180.0 / max(int(rows), 1) / ENV_BRIGHT_STEP_DEG - 1e-9))))
+
+
 def cell_edges(n_pixels: int, n_cells: int) -> npt.NDArray[np.intp]:
     """Start index of each of ``n_cells`` contiguous blocks of ``n_pixels`` pixels (as equal as integers allow)."""
     n_cells = max(1, min(int(n_cells), int(n_pixels)))
@@ -160,7 +168,8 @@ def environment_irradiance(engine: RayEngine | None, points_mm: npt.ArrayLike, n
     of a lat-long grid ``grid_shape`` = (H, W) (any rotation of it: cells are blocks of the grid, so they stay
     contiguous patches of the sphere). E_t = sum_m F_t(n.w_m) max(0, n.w_m) w_m V_km, with V_km the visibility
     of pixel m from patch k: for the :data:`ENV_BRIGHT_MAX` brightest pixels above :data:`ENV_BRIGHT_FACTOR` x
-    the map's mean radiance (a sun), the fraction of :data:`ENV_BRIGHT_SUB`^2 shadow rays spread over the pixel;
+    the map's mean radiance (a sun), the fraction of s x s shadow rays spread over the pixel (s =
+    :func:`bright_subdivisions`);
     for the rest, one ray per visibility cell (``rows`` x 2 ``rows`` blocks of the grid, at most the map's)
     towards the cell's irradiance-weighted centroid direction for that patch (module docstring: accuracy).
     ``engine`` None: no shadows. ``stats`` (a dict) receives ``rays``, ``cells`` and ``bright_pixels``."""
@@ -189,7 +198,8 @@ def environment_irradiance(engine: RayEngine | None, points_mm: npt.ArrayLike, n
     dim_wt = wt.copy()
     dim_wt[bright] = 0.0
     dim_lum = dim_wt.sum(axis=1)
-    sub_dirs = _sub_directions(w, h, wd, bright, ENV_BRIGHT_SUB) if len(bright) else np.zeros((0, 1, 3))
+    n_sub = bright_subdivisions(h)
+    sub_dirs = _sub_directions(w, h, wd, bright, n_sub) if len(bright) else np.zeros((0, 1, 3))
     n_rays = 0
     chunk = max(1, _CHUNK_ELEMENTS // max(1, h * wd))
     for s in range(0, k_all, chunk):
@@ -218,7 +228,7 @@ def environment_irradiance(engine: RayEngine | None, points_mm: npt.ArrayLike, n
             n_rays += len(kk)
             b = np.flatnonzero(blocked)
             np.add.at(loss, kk[b], e_cell[kk[b], rr[b], cc[b]])
-        # the bright pixels: the blocked fraction of ENV_BRIGHT_SUB^2 rays each (those above the horizon)
+        # the bright pixels: the blocked fraction of n_sub^2 rays each (those above the horizon)
         if len(bright):
             kb, pb = np.nonzero(a[:, bright] > 0)
             if len(kb):
@@ -227,7 +237,7 @@ def environment_irradiance(engine: RayEngine | None, points_mm: npt.ArrayLike, n
                 pi, si = np.nonzero(up)
                 blocked = _blocked(engine, x, n, own_face, kb[pi] + s, dd[pi, si])
                 n_rays += len(pi)
-                frac = np.bincount(pi, weights=blocked.astype(np.float64), minlength=len(kb)) / ENV_BRIGHT_SUB ** 2
+                frac = np.bincount(pi, weights=blocked.astype(np.float64), minlength=len(kb)) / n_sub ** 2
                 np.add.at(loss, kb, (frac * a[kb, bright[pb]])[:, None] * wt[bright[pb]])
         if np.any(loss > 0):
             out[s:s + chunk] = np.maximum(out[s:s + chunk] - loss, 0.0)   # (rounding of a fully shadowed patch)

@@ -389,6 +389,49 @@ class MeshObject:
         return _patch_exitance(self, points_mm, led_positions_mm, emissions)
 
 
+def wall_on_slab_mesh(length_mm: float = 30.0, slab_mm: float = 5.0, wall_mm: float = 8.0, height_mm: float = 20.0,
+                      depth_mm: float = 20.0, *, max_edge_mm: float | None = None,
+                      flat_shading: bool = False) -> trimesh.Trimesh:
+    """A non-convex test object: an L-shaped block, a slab (x in [``wall_mm``, ``length_mm``], top at z =
+    ``slab_mm``) with a wall (x in [0, ``wall_mm``], up to z = ``height_mm``), over y in +-``depth_mm``/2, outward
+    normals. A light beyond the wall (x < 0) casts the wall's shadow on the slab's top. ``max_edge_mm``
+    subdivides it (``trimesh.remesh.subdivide_to_size``); ``flat_shading`` gives every planar side its own vertices
+    (the vertex normals are then the face normals: no smoothing over the block's edges; the mesh is then not
+    watertight, which is fine for rendering and estimation)."""
+    poly = np.array([(0, 0), (length_mm, 0), (length_mm, slab_mm), (wall_mm, slab_mm), (wall_mm, height_mm),
+                     (0, height_mm)], float)
+    if not (0 < slab_mm < height_mm and 0 < wall_mm < length_mm and depth_mm > 0):
+        raise ValueError("wall_on_slab_mesh: need 0 < slab_mm < height_mm, 0 < wall_mm < length_mm, depth_mm > 0")
+    n = len(poly)
+    cap = [(3, 4, 5), (3, 5, 0), (3, 0, 1), (3, 1, 2)]        # a fan from the reflex vertex covers the L
+    v = np.vstack([np.c_[poly[:, 0], np.full(n, -depth_mm / 2), poly[:, 1]],
+                   np.c_[poly[:, 0], np.full(n, depth_mm / 2), poly[:, 1]]])
+    sides = [[(a, c, b) for a, b, c in cap], [(a + n, b + n, c + n) for a, b, c in cap]]
+    sides += [[(i, (i + 1) % n, (i + 1) % n + n), (i, (i + 1) % n + n, i + n)] for i in range(n)]
+    f = np.array([t for side in sides for t in side])
+    # y -> -y mirrors the extrusion (which was wound for +y out of the cap): flip if the volume came out negative
+    vol = np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])).sum() / 6.0
+    if vol < 0:
+        f = f[:, ::-1]
+    parts = [(v, f)]
+    if flat_shading:
+        parts = []
+        start = 0
+        for side in sides:
+            ff = f[start:start + len(side)]
+            start += len(side)
+            used, inv = np.unique(ff, return_inverse=True)
+            parts.append((v[used], inv.reshape(-1, 3)))
+    out_v, out_f, off = [], [], 0
+    for pv, pf in parts:
+        if max_edge_mm is not None:
+            pv, pf = trimesh.remesh.subdivide_to_size(pv, pf, max_edge=float(max_edge_mm))
+        out_v.append(pv)
+        out_f.append(pf + off)
+        off += len(pv)
+    return trimesh.Trimesh(np.vstack(out_v), np.vstack(out_f), process=not flat_shading)
+
+
 def _patch_exitance(obj: SphereObject | MeshObject, points_mm: FloatArray, led_positions_mm: FloatArray,
                     emissions: list[FloatArray]) -> list[FloatArray]:
     centers, normals, areas = obj.patches()
