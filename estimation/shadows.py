@@ -69,14 +69,15 @@ def is_convex_mesh(vertices: npt.ArrayLike, faces: npt.ArrayLike, *, rel_tol: fl
     """True when the closed triangle mesh is convex: watertight, one body, every edge convex (trimesh's local
     test, ``trimesh.convex.is_convex``) *and* its enclosed volume equals its vertices' convex hull's within
     ``rel_tol`` (the local test alone would pass a surface wound around twice). Such a mesh casts no shadow on
-    itself: a point sees every direction above its tangent plane. Open or multi-body meshes are not convex."""
+    itself: a point sees every direction above its tangent plane. Duplicated vertices are merged first; open or
+    multi-body meshes are not convex."""
     import trimesh
 
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces, dtype=np.int64)
     if len(f) < 4:
         return False
-    mesh = trimesh.Trimesh(v, f, process=False)
+    mesh = trimesh.Trimesh(v, f, process=True)     # merges duplicated vertices (a flat-shaded export) first
     if not mesh.is_convex:
         return False
     try:

@@ -31,6 +31,9 @@ def test_is_convex_mesh() -> None:
     assert wall.is_watertight and not is_convex_mesh(wall.vertices, wall.faces)
     torus = trimesh.creation.torus(10.0, 4.0)
     assert not is_convex_mesh(torus.vertices, torus.faces)
+    box = trimesh.creation.box()
+    v = box.vertices[box.faces].reshape(-1, 3)                               # every face its own vertices
+    assert is_convex_mesh(v, np.arange(len(v)).reshape(-1, 3))
     open_box = trimesh.creation.box()
     assert not is_convex_mesh(open_box.vertices, open_box.faces[:-2])        # a missing side: not closed
 
