@@ -69,11 +69,12 @@ class SphereObject:
 
 def led_irradiance(points_mm: FloatArray, normals: FloatArray, led_positions_mm: FloatArray,
                    led_radiant_intensity: FloatArray, eta: float, *, transmitted: bool = True,
-                   occluder: RayEngine | None = None) -> FloatArray:
+                   occluder: RayEngine | None = None, visibility: npt.NDArray[np.bool_] | None = None) -> FloatArray:
     """Irradiance (K, C) from point-like LEDs: sum_l V_kl I_l max(0, n.w) / d^2, times F_t(eta, n.w) if
     ``transmitted`` (the seed's c_k per unit area). V_kl: without ``occluder`` 1 (no self-shadowing beyond n.w,
     exact for a convex object); with one, the cast shadow of that mesh (one shadow ray per point and lit LED,
-    :func:`estimation.shadows.point_light_visibility`)."""
+    :func:`estimation.shadows.point_light_visibility`); or given as ``visibility`` (K, N) (computed once for
+    several emissions)."""
     lit = np.flatnonzero(np.any(led_radiant_intensity > 0, axis=1))
     out = np.zeros((len(points_mm), led_radiant_intensity.shape[1]))
     for start in range(0, len(lit), 64):
@@ -84,7 +85,9 @@ def led_irradiance(points_mm: FloatArray, normals: FloatArray, led_positions_mm:
         w = cos / dist2
         if transmitted:
             w = w * fresnel_transmittance(eta, cos)
-        if occluder is not None:
+        if visibility is not None:
+            w = w * visibility[:, idx]
+        elif occluder is not None:
             w = w * point_light_visibility(occluder, points_mm, normals, led_positions_mm[idx])
         out += w @ led_radiant_intensity[idx]
     return out
@@ -436,9 +439,14 @@ def _patch_exitance(obj: SphereObject | MeshObject, points_mm: FloatArray, led_p
                     emissions: list[FloatArray]) -> list[FloatArray]:
     centers, normals, areas = obj.patches()
     occ = _shadow_engine(obj)
+    vis = None
+    if occ is not None and emissions:      # once for every LED lit in any emission (visibility does not depend on the drive)
+        lit = np.flatnonzero(np.any([np.any(np.asarray(em) > 0, axis=1) for em in emissions], axis=0))
+        vis = np.zeros((len(centers), len(led_positions_mm)), dtype=bool)
+        vis[:, lit] = point_light_visibility(occ, centers, normals, np.asarray(led_positions_mm)[lit])
     out = []
     for em in emissions:
-        e_t = led_irradiance(centers, normals, led_positions_mm, em, obj.eta, occluder=occ)
+        e_t = led_irradiance(centers, normals, led_positions_mm, em, obj.eta, visibility=vis)
         out.append(diffuse_exitance(points_mm, centers, areas, e_t, np.asarray(obj.sigma_s_prime_per_mm),
                                     np.asarray(obj.sigma_a_per_mm), obj.eta))
     return out
