@@ -440,7 +440,7 @@ def _patch_exitance(obj: SphereObject | MeshObject, points_mm: FloatArray, led_p
     centers, normals, areas = obj.patches()
     occ = _shadow_engine(obj)
     vis = None
-    if occ is not None and emissions:      # once for every LED lit in any emission (visibility does not depend on the drive)
+    if occ is not None and emissions:   # once for every LED lit in any emission (independent of the drive)
         lit = np.flatnonzero(np.any([np.any(np.asarray(em) > 0, axis=1) for em in emissions], axis=0))
         vis = np.zeros((len(centers), len(led_positions_mm)), dtype=bool)
         vis[:, lit] = point_light_visibility(occ, centers, normals, np.asarray(led_positions_mm)[lit])
