@@ -226,6 +226,17 @@ def irradiance_point_lights(centers: ArrayLike, normals: ArrayLike, light_positi
     return w @ inten
 
 
+def transmitted_cosine(cos: ArrayLike, eta: float) -> Array:
+    """F_t(eta, c) max(0, c) elementwise, with F_t evaluated only where c > 0 (about half of a patch x
+    environment-direction table: half the cost, the same values)."""
+    c = np.asarray(cos, dtype=np.float64)
+    out = np.zeros(c.shape)
+    m = c > 0.0
+    cm = c[m]
+    out[m] = fresnel_transmittance(eta, cm) * cm
+    return out
+
+
 def irradiance_directional(normals: ArrayLike, directions: ArrayLike, radiance_weights: ArrayLike,
                            eta: float, *, visibility: ArrayLike | None = None) -> Array:
     """Fresnel-transmitted irradiance from distant lights / environment samples, (K, C).
@@ -245,8 +256,7 @@ def irradiance_directional(normals: ArrayLike, directions: ArrayLike, radiance_w
         wt = wt[:, None] if wt.shape[0] == w.shape[0] else wt[None, :]
     if wt.shape[0] != w.shape[0]:
         raise ValueError("radiance_weights must be (L, C) with L = len(directions)")
-    cos = np.maximum(n @ w.T, 0.0)
-    a = fresnel_transmittance(eta, cos) * cos
+    a = transmitted_cosine(n @ w.T, eta)
     if visibility is not None:
         a = a * np.asarray(visibility, dtype=np.float64)
     return a @ wt

@@ -45,7 +45,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from .fresnel import fresnel_transmittance
+from .forward import transmitted_cosine
 from .rays import RayEngine
 
 FloatArray = npt.NDArray[np.float64]
@@ -210,8 +210,7 @@ def environment_irradiance(engine: RayEngine | None, points_mm: npt.ArrayLike, n
     chunk = max(1, _CHUNK_ELEMENTS // max(1, h * wd))
     for s in range(0, k_all, chunk):
         nk = n[s:s + chunk]
-        cos = np.maximum(nk @ w.T, 0.0)
-        a = fresnel_transmittance(eta, cos) * cos                        # (k, M)
+        a = transmitted_cosine(nk @ w.T, eta)                            # (k, M): F_t(n.w) max(0, n.w)
         out[s:s + chunk] = a @ wt
         if engine is None:
             continue
