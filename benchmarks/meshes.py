@@ -17,6 +17,16 @@ into the body: non-convex, with a hole), ~100k faces (``--quick``: ~26k). A pinh
    order rasterizer (run whole), every pixel ray against every face (old ``MeshObject._hits``) and every patch
    segment against every face (old ``_occluded``), the last two timed on a subset and extrapolated linearly
    (they are O(rays x faces)). benchmarks/_brute_force_visibility.py holds the old code.
+3. **Cast shadows** (issue 17 part 2): shadow rays of a point light from 10k face centres of the full mesh
+   against all its faces (``estimation.shadows.point_light_visibility``), and the environment-map shadows of a
+   sky with a sun (64 x 128 map, default 16 cell rows) on the ~10k patches (``environment_irradiance``).
+4. **End to end**: ``rig estimate single-image`` (``rig.scene_file.load_scene`` + ``estimate_scene``, model
+   ``mc-table``, method direct) on a scene file of the ~10k-face tessellation (10,240 patches; the scene file
+   holds one patch per face — patch decimation of the 100k-face mesh is not built), lit by a point light, its
+   image the estimator's own forward model with shadows painted per face through the ray-cast pixel map; with
+   shadows on (default for this non-convex mesh) beside shadows off, and the geometry stages (patches,
+   occlusion, pixel map, shadows) timed separately. The figure for the 100k-face mesh at 10k patches is that
+   run plus the difference of the full mesh's geometry stages (sections 2-3), printed as an estimate.
 
 Timings are wall-clock minima over ``--repeats`` runs; the load average is printed (on a shared machine the
 absolute times are inflated; ratios within one run remain meaningful). Embree runs on its own thread pool (all
@@ -44,7 +54,9 @@ from _brute_force_visibility import (hits_brute_force, occluded_brute_force,  # 
                                      pixel_faces_painters_order)
 from estimation.camera import PinholeCamera  # noqa: E402
 from estimation.rays import RayEngine, embree_available  # noqa: E402
-from estimation.single_image import patches_from_mesh  # noqa: E402
+from estimation.shadows import environment_irradiance, point_light_visibility  # noqa: E402
+from estimation.single_image import (EnvironmentMap, PointLights, patch_irradiance,  # noqa: E402
+                                     patches_from_mesh, predict_radiance)
 from estimation.single_image.geometry import occluded_from  # noqa: E402
 from rig.estimate import pixel_faces  # noqa: E402
 
@@ -182,6 +194,85 @@ def visibility(mesh: trimesh.Trimesh, patch_mesh: trimesh.Trimesh, cam: PinholeC
     return out
 
 
+LIGHT_MM = np.array([[-120.0, -160.0, 140.0]])
+
+
+def _sky(h: int = 64, w: int = 128) -> np.ndarray:
+    th, ph = np.meshgrid(np.pi * (np.arange(h) + 0.5) / h, 2 * np.pi * (np.arange(w) + 0.5) / w, indexing="ij")
+    d = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], -1)
+    s = np.array([-np.sin(0.7), -0.3, np.cos(0.7)])
+    s /= np.linalg.norm(s)
+    return (0.2 + 0.8 * np.clip(d[..., 2], 0, 1) + 400.0 * np.exp((d @ s - 1.0) / 0.003))[..., None]
+
+
+def shadows(mesh: trimesh.Trimesh, patch_mesh: trimesh.Trimesh, cam: PinholeCamera, n_patch: int,
+            repeats: int) -> dict[str, Any]:
+    rng = np.random.default_rng(2)
+    centers = np.asarray(mesh.triangles_center, float)
+    own = rng.choice(len(centers), size=n_patch, replace=False)
+    eng = RayEngine(mesh.vertices, mesh.faces)
+    normals = np.asarray(mesh.face_normals, float)
+    t_pt, vis = _best(lambda: point_light_visibility(eng, centers[own], normals[own], LIGHT_MM, own_face=own),
+                      repeats)
+    facing = np.einsum("kc,kc->k", LIGHT_MM[0] - centers[own], normals[own]) > 0
+    p = patches_from_mesh(patch_mesh, cam)
+    env = EnvironmentMap(_sky())
+    d, w = env.directions_and_weights()
+    stats: dict[str, Any] = {}
+    t_env, _ = _best(lambda: environment_irradiance(p.occluder, p.centers_mm, p.normals, d, w, env.grid_shape(),
+                                                    1.3, stats=stats), 1)
+    t_env0, _ = _best(lambda: patch_irradiance(p, env, 1.3, shadows=False), 1)
+    return {"point_shadow_rays": int(facing.sum()), "point_shadow_s": t_pt,
+            "point_shadowed_fraction": float(np.mean(~vis[facing, 0])),
+            "env_patches": len(p.areas_mm2), "env_rays": stats["rays"], "env_bright_pixels": stats["bright_pixels"],
+            "env_shadows_s": t_env, "env_unshadowed_s": t_env0}
+
+
+def end_to_end(patch_mesh: trimesh.Trimesh, cam: PinholeCamera, folder: Path) -> dict[str, Any]:
+    """Time rig estimate single-image on a scene file of ``patch_mesh`` (see the module docstring, item 4)."""
+    from rig.imageio import write_exr
+    from rig.scene_file import estimate_scene, load_scene
+
+    ssp, sa, eta, inten = 1.2, 0.01, 1.3, 1e6
+    p = patches_from_mesh(patch_mesh, cam)
+    lights = PointLights(LIGHT_MM, [[inten]])
+    lo = predict_radiance(p, lights, eta, [ssp], [sa], model="mc-table")   # visible patches, shadows on
+    rad = np.zeros(len(p.areas_mm2))
+    rad[p.visible] = lo[:, 0]
+    faces = pixel_faces(patch_mesh, cam)
+    img = np.where(faces >= 0, rad[np.maximum(faces, 0)], 0.0)[..., None].astype(np.float32)
+    write_exr(folder / "img.exr", img)
+    patch_mesh.export(folder / "mesh.ply")
+    cam_rows = "\n".join(f"  {list(map(float, r))}," for r in cam.R)
+    (folder / "scene.toml").write_text(
+        "version = 1\n[mesh]\npath = \"mesh.ply\"\n"
+        f"[camera]\nwidth_px = {cam.width_px}\nheight_px = {cam.height_px}\nfx_px = {cam.fx_px}\n"
+        f"position_mm = {list(map(float, cam.C))}\nrotation = [\n{cam_rows}\n]\n"
+        "[image]\npath = \"img.exr\"\nspecular_free = true\n"
+        f"[[point_lights]]\nposition_mm = {list(map(float, LIGHT_MM[0]))}\nintensity = {inten}\n"
+        f"[material]\neta = {eta}\nmodel = \"mc-table\"\n[noise]\nsigma = {1e-3 * float(np.median(lo)):.6g}\n")
+    out: dict[str, Any] = {"patches": len(p.areas_mm2), "visible": int(p.visible.sum()),
+                           "faces": len(patch_mesh.faces)}
+    for mode in ("on", "off"):
+        t0 = time.perf_counter()
+        scene = load_scene(folder / "scene.toml")
+        t1 = time.perf_counter()
+        res = estimate_scene(scene, shadows=mode)
+        t2 = time.perf_counter()
+        out[mode] = {"load_s": t1 - t0, "estimate_s": t2 - t1, "total_s": t2 - t0,
+                     "sigma_s_prime_error": res["parameters"]["sigma_s_prime_per_mm"]["value"][0] / ssp - 1.0,
+                     "cast_shadows": res["observations"]["cast_shadows"]}
+    # the geometry stages alone (what visibility and shadows cost inside the run)
+    t_pt, p_on = _best(lambda: patches_from_mesh(patch_mesh, cam, shadows=True), 1)
+    t_po, _ = _best(lambda: patches_from_mesh(patch_mesh, cam, shadows=False), 1)
+    t_pf, _ = _best(lambda: pixel_faces(patch_mesh, cam), 1)
+    t_irr, _ = _best(lambda: patch_irradiance(p_on, lights, eta), 1)
+    out.update(patches_occlusion_s=t_po, patches_engine_extra_s=max(t_pt - t_po, 0.0), pixel_map_s=t_pf,
+               shadow_irradiance_s=t_irr,
+               visibility_and_shadows_s=t_pt + t_pf + t_irr)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="a ~26k-face mesh, fewer rays and pixels (< 30 s)")
@@ -233,7 +324,29 @@ def main(argv: list[str] | None = None) -> int:
         f"{v['visibility_brute_force_s_extrapolated']:.0f} s (extrapolated) -> "
         f"{v['visibility_brute_force_s_extrapolated'] / v['visibility_s']:.0f}x; "
         f"run {time.perf_counter() - t_start:.1f} s")
-    data = {"quick": quick, "load_average": load, "rates": r, "visibility": v}
+    sh = shadows(mesh, patch_mesh, cam, 10_000, repeats)
+    say(f"shadows: point light, {sh['point_shadow_rays']} shadow rays from face centres of the {len(mesh.faces)}-face "
+        f"mesh ({sh['point_shadowed_fraction']:.1%} shadowed): {sh['point_shadow_s']:.3f} s | sky + sun 64 x 128 on "
+        f"{sh['env_patches']} patches: {sh['env_rays']} rays ({sh['env_bright_pixels']} bright px) "
+        f"{sh['env_shadows_s']:.2f} s (unshadowed irradiance alone {sh['env_unshadowed_s']:.2f} s)")
+    import tempfile
+    with tempfile.TemporaryDirectory() as tmp:
+        e = end_to_end(patch_mesh, cam, Path(tmp))
+    on, off = e["on"], e["off"]
+    say(f"rig estimate single-image (scene file, mc-table, {e['patches']} patches = faces, {e['visible']} visible, "
+        f"point light): shadows on {on['total_s']:.2f} s (load {on['load_s']:.2f}) sigma_s' {on['sigma_s_prime_error']:+.1%}"
+        f" | shadows off {off['total_s']:.2f} s sigma_s' {off['sigma_s_prime_error']:+.1%} | geometry inside: patches "
+        f"+ occlusion {e['patches_occlusion_s']:.3f} s, pixel map {e['pixel_map_s']:.3f} s, shadowed irradiance "
+        f"{e['shadow_irradiance_s']:.3f} s: visibility + shadows {e['visibility_and_shadows_s']:.3f} s = "
+        f"{e['visibility_and_shadows_s'] / on['total_s']:.0%} of the run")
+    full_geo = v["pixel_map_s"] + v["engine_build_s"] + v["occlusion_full_mesh_s"] + sh["point_shadow_s"]
+    est = on["total_s"] - e["visibility_and_shadows_s"] + full_geo
+    say(f"estimate for the {len(mesh.faces)}-face mesh at ~10k patches (this run with the full mesh's geometry "
+        f"stages: pixel map + build + occlusion + point shadows {full_geo:.2f} s): {est:.2f} s, visibility + shadows "
+        f"{full_geo / est:.0%} (acceptance: < 5 s, < 25 %) | old path (brute-force visibility, no shadows): "
+        f"{off['total_s'] - e['visibility_and_shadows_s'] + v['visibility_brute_force_s_extrapolated']:.0f} s "
+        f"(extrapolated)")
+    data = {"quick": quick, "load_average": load, "rates": r, "visibility": v, "shadows": sh, "end_to_end": e}
     if a.json == "-":
         print(json.dumps(data, indent=1))
     elif a.json:

@@ -120,13 +120,15 @@ def file_check(scene: Any, spec: SceneSpec, spp: int) -> list[float]:
     return out
 
 
-def run_model(scene: Any, model: str, spec: SceneSpec, ref_spp: int, ref_iterations: int) -> dict[str, Any]:
+def run_model(scene: Any, model: str, spec: SceneSpec, ref_spp: int, ref_iterations: int,
+              shadows: str | None = None) -> dict[str, Any]:
     from rig.scene_file import estimate_scene
 
     t0 = time.perf_counter()
     with captured() as rec:
         try:
-            res = estimate_scene(scene, model=model, reference_spp=ref_spp, reference_iterations=ref_iterations)
+            res = estimate_scene(scene, model=model, reference_spp=ref_spp, reference_iterations=ref_iterations,
+                                 shadows=shadows)
             exc = None
         except Exception as e:  # noqa: BLE001 - a crash is a result of the zoo, counted like a warning
             res, exc = {"success": False, "message": f"exception {type(e).__name__}: {e}",
@@ -256,6 +258,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--scenes", help="comma-separated scene indices (default: all of the zoo or the subset)")
     ap.add_argument("--models", help="comma-separated models (default: all four)")
     ap.add_argument("--root", type=Path, help="scene folders (default benchmarks/out/zoo or $SSSRIG_ZOO_DIR)")
+    ap.add_argument("--shadows", choices=["auto", "on", "off", "both"], default="auto",
+                    help="cast shadows in the estimates (default auto: on for non-convex meshes); 'both' also prints "
+                         "every fit with shadows off beside it (the acceptance rules use the first)")
     args = ap.parse_args(argv)
     ref_spp = args.reference_spp or (32 if args.quick else 128)
     ref_it = args.reference_iterations or (4 if args.quick else 6)
@@ -281,15 +286,21 @@ def main(argv: list[str] | None = None) -> int:
 
         scene = load_scene(folder / "scene.toml")
         check = file_check(scene, spec, ref_spp)
-        results = []
+        results, results_off = [], []
+        first = "auto" if args.shadows == "both" else args.shadows
         for m in models:
             print(f"[{i + 1}/{len(specs)}] {spec.name}: {m}", file=sys.stderr, flush=True)
-            results.append(run_model(scene, m, spec, ref_spp, ref_it))
+            results.append(run_model(scene, m, spec, ref_spp, ref_it, shadows=first))
+            if args.shadows == "both":
+                results_off.append(run_model(scene, m, spec, ref_spp, ref_it, shadows="off"))
         meta["file_check"] = check
         print_scene(spec, meta, folder, results)
+        if results_off:
+            print("  the same fits with shadows off:")
+            print_scene(spec, meta, folder, results_off)
         scenes.append({"name": spec.name, "folder": str(folder), "classes": sorted(
             spec.classes | {"noise-section" if spec.noise_section else "no-noise-section"}), "meta": meta,
-                       "results": results})
+                       "results": results, **({"results_shadows_off": results_off} if results_off else {})})
     verdict = summarize(scenes, models)
     total = time.perf_counter() - t_all
     print(f"\ntotal {total:.0f} s ({len(specs)} scenes; frames rendered this run "

@@ -470,6 +470,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="mc-table+reference: at most K reference renders (default: the scene file's, else 4)")
     q.add_argument("--reference-seed", type=_int_at_least(0), default=None, metavar="S",
                    help="mc-table+reference: seed of every reference render (default: the scene file's, else 1)")
+    q.add_argument("--shadows", choices=["auto", "on", "off"], default=None,
+                   help="cast shadows of the lights on the mesh (default: the scene file's [estimation].shadows, "
+                        "else auto = on for non-convex meshes; docs/visibility.md)")
     q.add_argument("--out", type=Path, default=None,
                    help="JSON result file (default: <scene>.estimate.json beside the scene file)")
     q.add_argument("--json", action="store_true", help="print the result as JSON instead of a table")

@@ -276,6 +276,7 @@ class EstimationSpec:
     reference_spp: int = 128  # model mc-table+reference: paths per pixel of each Monte Carlo reference render
     reference_iterations: int = 4  # at most this many reference renders
     reference_seed: int = 1  # the seed of every reference render (common random numbers)
+    shadows: str | bool = "auto"  # cast shadows of the lights: "auto" = for non-convex meshes (docs/visibility.md)
 
 
 @dataclass(frozen=True)
@@ -755,13 +756,16 @@ def parse_scene(data: dict[str, Any], path: Path, file: str | None = None) -> Sc
 
     es = top.section("estimation") if top.has("estimation") else _SceneReader(file, {}, "estimation.")
     es.only(("method", "bin_mm", "window_px", "max_view_angle_deg", "occlusion", "cutoff_mm", "model_error",
-             "max_patches", "reference_spp", "reference_iterations", "reference_seed"))
+             "max_patches", "reference_spp", "reference_iterations", "reference_seed", "shadows"))
     window = es.int("window_px", 1, lo=1, hi=15)
     if window % 2 == 0:
         raise es.fail("window_px", "an odd number of pixels (1, 3, 5, ...)", window)
     occl = es.data.get("occlusion", "auto")
     if not (occl == "auto" or isinstance(occl, bool)):
         raise es.fail("occlusion", "\"auto\", true or false", occl)
+    shadows = es.data.get("shadows", "auto")
+    if not (shadows == "auto" or isinstance(shadows, bool)):
+        raise es.fail("shadows", "\"auto\", true or false", shadows)
     estimation = EstimationSpec(
         method=es.str("method", "direct", choices=METHODS), bin_mm=es.num("bin_mm", 0.35, positive=True),
         window_px=window, max_view_angle_deg=es.num("max_view_angle_deg", 70.0, lo=1.0, hi=89.0),
@@ -769,7 +773,7 @@ def parse_scene(data: dict[str, Any], path: Path, file: str | None = None) -> Sc
         model_error=es.num("model_error", 0.02, lo=0.0, hi=1.0), max_patches=es.int("max_patches", 20000, lo=10),
         reference_spp=es.int("reference_spp", 128, lo=2, hi=1_000_000),
         reference_iterations=es.int("reference_iterations", 4, lo=1, hi=100),
-        reference_seed=es.int("reference_seed", 1, lo=0, hi=2 ** 31 - 1))
+        reference_seed=es.int("reference_seed", 1, lo=0, hi=2 ** 31 - 1), shadows=shadows)
     n_faces = len(mesh.faces)
     render_mesh = mesh
     if mesh_spec.max_edge_mm is not None:
@@ -848,6 +852,13 @@ def environment_directions(env: EnvironmentSpec, radiance: Array) -> tuple[Array
     return d @ env.rotation.T, w
 
 
+def environment_grid_shape(env: EnvironmentSpec, radiance: Array) -> tuple[int, int]:
+    """(rows, columns) of the lat-long grid :func:`environment_directions` returns (after downsampling)."""
+    from estimation.single_image import EnvironmentMap
+
+    return EnvironmentMap(radiance, max_size=env.max_size).grid_shape()
+
+
 def _irradiance(scene: Scene, patches: Any) -> Array:
     """Fresnel-transmitted irradiance E_t (K, C) of all the scene's lights on the patches."""
     from estimation.single_image import DirectionalLights, PointLights, patch_irradiance
@@ -865,7 +876,8 @@ def _irradiance(scene: Scene, patches: Any) -> Array:
         e += patch_irradiance(patches, dl, eta)
     if scene.environment is not None and scene.environment_data is not None:
         d, w = environment_directions(scene.environment, scene.environment_data)
-        e += patch_irradiance(patches, DirectionalLights(d, np.broadcast_to(w, (w.shape[0], n_ch))), eta)
+        grid = environment_grid_shape(scene.environment, scene.environment_data)   # per-cell cast shadows
+        e += patch_irradiance(patches, DirectionalLights(d, np.broadcast_to(w, (w.shape[0], n_ch)), grid), eta)
     return e
 
 
@@ -947,7 +959,8 @@ def _scene_summary(scene: Scene) -> dict[str, Any]:
                        "reference_iterations": scene.estimation.reference_iterations,
                        "reference_seed": scene.estimation.reference_seed,
                        "max_view_angle_deg": scene.estimation.max_view_angle_deg,
-                       "occlusion": scene.estimation.occlusion, "cutoff_mm": scene.estimation.cutoff_mm,
+                       "occlusion": scene.estimation.occlusion, "shadows": scene.estimation.shadows,
+                       "cutoff_mm": scene.estimation.cutoff_mm,
                        "model_error": scene.estimation.model_error},
         "noise": None if scene.noise is None else {"sigma": scene.noise.sigma,
                                                    "electrons_per_value": scene.noise.electrons_per_value,
@@ -960,7 +973,7 @@ def _scene_summary(scene: Scene) -> dict[str, Any]:
 
 def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None = None,
                    reference_spp: int | None = None, reference_iterations: int | None = None,
-                   reference_seed: int | None = None) -> dict[str, Any]:
+                   reference_seed: int | None = None, shadows: bool | str | None = None) -> dict[str, Any]:
     """Run the single-image method on a loaded scene; return a JSON-able result (docs/scene-file.md, "Output").
 
     ``method`` overrides the scene's ``[estimation].method``, ``model`` its ``[material].model``, and the
@@ -968,7 +981,8 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
     the Monte Carlo table fit corrected by Monte Carlo renders of the scene, :mod:`rig.scene_reference`). A failed
     estimate returns ``success: false`` with the reason in ``message`` (never raises for that); input errors were
     raised by :func:`load_scene`, or are raised here as :class:`SceneFileError` when only the reference cannot
-    handle them (e.g. point lights through a non-convex refracting mesh).
+    handle them (e.g. point lights through a non-convex refracting mesh). ``shadows`` ("auto", True/"on",
+    False/"off") overrides ``[estimation].shadows``: cast shadows of the lights on the mesh (docs/visibility.md).
     """
     from estimation.single_image import SingleImageResult, estimate_single_image, patches_from_mesh
 
@@ -991,7 +1005,10 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
     mesh = scene.mesh_data
     est = scene.estimation
     cos_min = math.cos(math.radians(est.max_view_angle_deg))
-    patches = patches_from_mesh(mesh, cam, cos_min=cos_min, occlusion=est.occlusion)
+    sh = est.shadows if shadows is None else {"on": True, "off": False}.get(shadows, shadows)  # type: ignore[call-overload]
+    if not (sh == "auto" or isinstance(sh, bool)):
+        raise ValueError(f"shadows must be 'auto', 'on', 'off', True or False; got {shadows!r}")
+    patches = patches_from_mesh(mesh, cam, cos_min=cos_min, occlusion=est.occlusion, shadows=sh)
     img = scene.image_data
     n_ch = img.shape[2]
     h, w = img.shape[:2]
@@ -1069,6 +1086,7 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
         "observations": {"patches": int(len(patches.areas_mm2)), "visible": int(patches.visible.sum()),
                          "observed_per_channel": n_obs.tolist(), "excluded_patches": excluded,
                          "object_pixels": int(on_object.sum()), "patch_spacing_mm": patches.spacing_mm,
+                         "cast_shadows": patches.shadows,
                          "nonfinite_pixels": int(scene.image_meta.get("nonfinite", 0))},
         "radiometry": {"radiance_scale": list(scene.image.radiance_scale), "cross_polarized_factor": factor,
                        "noise_model": noise_info},
@@ -1206,7 +1224,7 @@ def format_table(result: dict[str, Any]) -> str:
 
 def run_cli(args: Any) -> int:
     """``rig estimate single-image SCENE [--method M] [--model MODEL] [--reference-spp N]
-    [--reference-iterations K] [--reference-seed S] [--out FILE] [--json]``.
+    [--reference-iterations K] [--reference-seed S] [--shadows auto|on|off] [--out FILE] [--json]``.
 
     Prints a table (or the JSON with ``--json``) and writes the JSON atomically to ``--out`` or
     ``<scene>.estimate.json`` beside the scene file. Returns 0 on success, 1 if the estimate failed (the reason
@@ -1216,7 +1234,8 @@ def run_cli(args: Any) -> int:
     result = estimate_scene(scene, method=getattr(args, "method", None), model=getattr(args, "model", None),
                             reference_spp=getattr(args, "reference_spp", None),
                             reference_iterations=getattr(args, "reference_iterations", None),
-                            reference_seed=getattr(args, "reference_seed", None))
+                            reference_seed=getattr(args, "reference_seed", None),
+                            shadows=getattr(args, "shadows", None))
     out = getattr(args, "out", None)
     out_path = Path(out) if out is not None else Path(args.scene).with_suffix(".estimate.json")
     text = json.dumps(result, indent=2, allow_nan=False) + "\n"

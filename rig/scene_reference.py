@@ -167,7 +167,9 @@ def scene_reference(scene: Any, patches: Patches, valid_px: NDArray[np.bool_], *
                                  f"every pixel for the Monte Carlo reference ({exc})", list(cam.distortion)) from None
     lo, hi = verts.min(axis=0), verts.max(axis=0)
     lights = _lights(scene, frame, 0.5 * (lo + hi), float(np.linalg.norm(hi - lo)))
-    pat = replace(patches, centers_mm=patches.centers_mm @ rot.T, normals=patches.normals @ rot.T)
+    # rotated into the render frame: the world-frame shadow caster no longer fits them (only sampled here)
+    pat = replace(patches, centers_mm=patches.centers_mm @ rot.T, normals=patches.normals @ rot.T, occluder=None,
+                  face_index=None)
     ref = MonteCarloReference(shape, cam, lights, pat, spp=int(spp), window_px=scene.estimation.window_px,
                               valid_px=np.asarray(valid_px, bool))
     notes = []

@@ -27,6 +27,7 @@ from estimation.camera import PinholeCamera, intersect_sphere
 from estimation.forward import diffuse_exitance
 from estimation.rays import RayEngine
 from estimation.fresnel import fresnel_reflectance, fresnel_transmittance
+from estimation.shadows import is_convex_mesh, point_light_visibility
 
 if TYPE_CHECKING:
     from .mc_capture import MCSettings
@@ -67,10 +68,13 @@ class SphereObject:
 
 
 def led_irradiance(points_mm: FloatArray, normals: FloatArray, led_positions_mm: FloatArray,
-                   led_radiant_intensity: FloatArray, eta: float, *, transmitted: bool = True
-                   ) -> FloatArray:
-    """Irradiance (K, C) from point-like LEDs: sum_l I_l max(0, n.w) / d^2, times F_t(eta, n.w) if
-    ``transmitted`` (the seed's c_k per unit area). Convex object: no self-shadowing beyond n.w."""
+                   led_radiant_intensity: FloatArray, eta: float, *, transmitted: bool = True,
+                   occluder: RayEngine | None = None, visibility: npt.NDArray[np.bool_] | None = None) -> FloatArray:
+    """Irradiance (K, C) from point-like LEDs: sum_l V_kl I_l max(0, n.w) / d^2, times F_t(eta, n.w) if
+    ``transmitted`` (the seed's c_k per unit area). V_kl: without ``occluder`` 1 (no self-shadowing beyond n.w,
+    exact for a convex object); with one, the cast shadow of that mesh (one shadow ray per point and lit LED,
+    :func:`estimation.shadows.point_light_visibility`); or given as ``visibility`` (K, N) (computed once for
+    several emissions)."""
     lit = np.flatnonzero(np.any(led_radiant_intensity > 0, axis=1))
     out = np.zeros((len(points_mm), led_radiant_intensity.shape[1]))
     for start in range(0, len(lit), 64):
@@ -81,14 +85,19 @@ def led_irradiance(points_mm: FloatArray, normals: FloatArray, led_positions_mm:
         w = cos / dist2
         if transmitted:
             w = w * fresnel_transmittance(eta, cos)
+        if visibility is not None:
+            w = w * visibility[:, idx]
+        elif occluder is not None:
+            w = w * point_light_visibility(occluder, points_mm, normals, led_positions_mm[idx])
         out += w @ led_radiant_intensity[idx]
     return out
 
 
 def specular_radiance(points_mm: FloatArray, normals: FloatArray, view: FloatArray,
                       led_positions_mm: FloatArray, led_radiant_intensity: FloatArray, eta: float,
-                      roughness: float) -> FloatArray:
-    """GGX microfacet reflection of the LEDs (Walter et al. 2007), (P, C)."""
+                      roughness: float, *, occluder: RayEngine | None = None) -> FloatArray:
+    """GGX microfacet reflection of the LEDs (Walter et al. 2007), (P, C); LEDs hidden by ``occluder`` (a cast
+    shadow, as in :func:`led_irradiance`) reflect nothing."""
     a2 = roughness ** 4  # alpha = roughness^2
     lit = np.flatnonzero(np.any(led_radiant_intensity > 0, axis=1))
     out = np.zeros((len(points_mm), led_radiant_intensity.shape[1]))
@@ -107,7 +116,10 @@ def specular_radiance(points_mm: FloatArray, normals: FloatArray, view: FloatArr
         G = (cos_i / (cos_i * (1 - k) + k)) * (cos_o / (cos_o * (1 - k) + k))[:, None]
         F = fresnel_reflectance(eta, np.clip(np.sum(h * view[:, None, :], axis=-1), 0.0, 1.0))
         brdf = D * G * F / (4.0 * cos_o[:, None] * np.maximum(cos_i, 1e-9))
-        out += (brdf * cos_i / dist2) @ led_radiant_intensity[idx]
+        w = brdf * cos_i / dist2
+        if occluder is not None:
+            w = w * point_light_visibility(occluder, points_mm, normals, led_positions_mm[idx])
+        out += w @ led_radiant_intensity[idx]
     return out
 
 
@@ -291,6 +303,9 @@ class MeshObject:
     Patches: the mesh faces after ``subdivisions`` midpoint subdivisions. Pixel normals: the vertex normals
     interpolated barycentrically over the face the ray hits (a smooth shading normal, like a scanned mesh's).
     Subsurface transport: :func:`estimation.forward.diffuse_exitance` over the patches, as for the sphere.
+    ``shadows``: the mesh casts shadows of the LEDs on its patches and pixels (shadow rays,
+    :mod:`estimation.shadows`; "fast" render mode — the Monte Carlo mode traces them anyway): "auto" (default) when
+    it is not convex (:func:`estimation.shadows.is_convex_mesh`), True, or False (max(0, n.l) only, as before).
     """
 
     mesh: trimesh.Trimesh
@@ -299,8 +314,32 @@ class MeshObject:
     eta: float
     subdivisions: int = 0
     specular_roughness: float = 0.15
+    shadows: bool | str = "auto"
     _engine: RayEngine | None = field(default=None, repr=False, compare=False)
     _engine_key: int | None = field(default=None, repr=False, compare=False)
+    _convex: bool | None = field(default=None, repr=False, compare=False)
+
+    def _ray_engine(self) -> RayEngine:
+        key = hash(self.mesh)    # trimesh's hash of the vertex and face data: an edited mesh gets a new engine
+        if self._engine is None or self._engine_key != key:
+            self._engine = RayEngine(np.asarray(self.mesh.vertices, float), np.asarray(self.mesh.faces))
+            self._engine_key = key
+            self._convex = None
+        return self._engine
+
+    def shadow_engine(self) -> RayEngine | None:
+        """The ray engine that casts this mesh's shadows, or None (shadows off, or "auto" on a convex mesh)."""
+        if not (self.shadows == "auto" or isinstance(self.shadows, (bool, np.bool_))):
+            raise ValueError(f"MeshObject.shadows must be 'auto', True or False; got {self.shadows!r}")
+        if self.shadows is False:
+            return None
+        eng = self._ray_engine()
+        if self.shadows == "auto":
+            if self._convex is None:
+                self._convex = is_convex_mesh(self.mesh.vertices, self.mesh.faces)
+            if self._convex:
+                return None
+        return eng
 
     def patches(self) -> tuple[FloatArray, FloatArray, FloatArray]:
         m = self.mesh
@@ -313,11 +352,7 @@ class MeshObject:
                                                                      FloatArray, FloatArray]:
         """Nearest hit of each ray (M, 3) (unit ``dirs``): t (inf if none), face index (-1 if none), barycentrics
         (b1, b2) of the hit point on that face (0 for a miss); first hits by :class:`estimation.rays.RayEngine`."""
-        key = hash(self.mesh)    # trimesh's hash of the vertex and face data: an edited mesh gets a new engine
-        if self._engine is None or self._engine_key != key:
-            self._engine = RayEngine(np.asarray(self.mesh.vertices, float), np.asarray(self.mesh.faces))
-            self._engine_key = key
-        face, t = self._engine.first_hit(origins, dirs, min_dist=1e-9)
+        face, t = self._ray_engine().first_hit(origins, dirs, min_dist=1e-9)
         hit = face >= 0
         tri = np.asarray(self.mesh.triangles, float)[face[hit]]
         p = origins[hit] + t[hit, None] * dirs[hit]
@@ -357,18 +392,72 @@ class MeshObject:
         return _patch_exitance(self, points_mm, led_positions_mm, emissions)
 
 
+def wall_on_slab_mesh(length_mm: float = 30.0, slab_mm: float = 5.0, wall_mm: float = 8.0, height_mm: float = 20.0,
+                      depth_mm: float = 20.0, *, max_edge_mm: float | None = None,
+                      flat_shading: bool = False) -> trimesh.Trimesh:
+    """A non-convex test object: an L-shaped block, a slab (x in [``wall_mm``, ``length_mm``], top at z =
+    ``slab_mm``) with a wall (x in [0, ``wall_mm``], up to z = ``height_mm``), over y in +-``depth_mm``/2, outward
+    normals. A light beyond the wall (x < 0) casts the wall's shadow on the slab's top. ``max_edge_mm``
+    subdivides it (``trimesh.remesh.subdivide_to_size``); ``flat_shading`` gives every planar side its own vertices
+    (the vertex normals are then the face normals: no smoothing over the block's edges; the mesh is then not
+    watertight, which is fine for rendering and estimation)."""
+    poly = np.array([(0, 0), (length_mm, 0), (length_mm, slab_mm), (wall_mm, slab_mm), (wall_mm, height_mm),
+                     (0, height_mm)], float)
+    if not (0 < slab_mm < height_mm and 0 < wall_mm < length_mm and depth_mm > 0):
+        raise ValueError("wall_on_slab_mesh: need 0 < slab_mm < height_mm, 0 < wall_mm < length_mm, depth_mm > 0")
+    n = len(poly)
+    cap = [(3, 4, 5), (3, 5, 0), (3, 0, 1), (3, 1, 2)]        # a fan from the reflex vertex covers the L
+    v = np.vstack([np.c_[poly[:, 0], np.full(n, -depth_mm / 2), poly[:, 1]],
+                   np.c_[poly[:, 0], np.full(n, depth_mm / 2), poly[:, 1]]])
+    sides = [[(a, c, b) for a, b, c in cap], [(a + n, b + n, c + n) for a, b, c in cap]]
+    sides += [[(i, (i + 1) % n, (i + 1) % n + n), (i, (i + 1) % n + n, i + n)] for i in range(n)]
+    f = np.array([t for side in sides for t in side])
+    # y -> -y mirrors the extrusion (which was wound for +y out of the cap): flip if the volume came out negative
+    vol = np.einsum("ij,ij->i", v[f[:, 0]], np.cross(v[f[:, 1]], v[f[:, 2]])).sum() / 6.0
+    if vol < 0:
+        f = f[:, ::-1]
+    parts = [(v, f)]
+    if flat_shading:
+        parts = []
+        start = 0
+        for side in sides:
+            ff = f[start:start + len(side)]
+            start += len(side)
+            used, inv = np.unique(ff, return_inverse=True)
+            parts.append((v[used], inv.reshape(-1, 3)))
+    out_v, out_f, off = [], [], 0
+    for pv, pf in parts:
+        if max_edge_mm is not None:
+            pv, pf = trimesh.remesh.subdivide_to_size(pv, pf, max_edge=float(max_edge_mm))
+        out_v.append(pv)
+        out_f.append(pf + off)
+        off += len(pv)
+    return trimesh.Trimesh(np.vstack(out_v), np.vstack(out_f), process=not flat_shading)
+
+
 def _patch_exitance(obj: SphereObject | MeshObject, points_mm: FloatArray, led_positions_mm: FloatArray,
                     emissions: list[FloatArray]) -> list[FloatArray]:
     centers, normals, areas = obj.patches()
+    occ = _shadow_engine(obj)
+    vis = None
+    if occ is not None and emissions:   # once for every LED lit in any emission (independent of the drive)
+        lit = np.flatnonzero(np.any([np.any(np.asarray(em) > 0, axis=1) for em in emissions], axis=0))
+        vis = np.zeros((len(centers), len(led_positions_mm)), dtype=bool)
+        vis[:, lit] = point_light_visibility(occ, centers, normals, np.asarray(led_positions_mm)[lit])
     out = []
     for em in emissions:
-        e_t = led_irradiance(centers, normals, led_positions_mm, em, obj.eta)
+        e_t = led_irradiance(centers, normals, led_positions_mm, em, obj.eta, visibility=vis)
         out.append(diffuse_exitance(points_mm, centers, areas, e_t, np.asarray(obj.sigma_s_prime_per_mm),
                                     np.asarray(obj.sigma_a_per_mm), obj.eta))
     return out
 
 
 SceneObject = SphereObject | BumpySlabObject | MeshObject
+
+
+def _shadow_engine(obj: object) -> RayEngine | None:
+    """The engine casting ``obj``'s shadows (a non-convex :class:`MeshObject` with shadows on), else None."""
+    return obj.shadow_engine() if isinstance(obj, MeshObject) else None
 
 
 def _exitance(obj: SceneObject, points_mm: FloatArray, led_positions_mm: FloatArray,
@@ -425,7 +514,8 @@ def render_object(obj: SceneObject, camera: PinholeCamera, led_positions_mm: Flo
         diffuse = fresnel_transmittance(obj.eta, cos_o)[:, None] / np.pi * b
     spec = 0.0
     if include_specular and polarization != Polarization.CROSS:
-        spec = specular_radiance(p, n, v, led_positions_mm, led_radiant_intensity, obj.eta, obj.specular_roughness)
+        spec = specular_radiance(p, n, v, led_positions_mm, led_radiant_intensity, obj.eta, obj.specular_roughness,
+                                 occluder=_shadow_engine(obj))
     img[hit] = k * diffuse + spec
     return RenderResult(img, hit, se_img)
 
@@ -539,7 +629,8 @@ def render_gradient_capture(obj: SceneObject, camera: PinholeCamera, led_positio
             img = np.zeros((H, W, 3))
             val = 0.5 * ft * b + ambient_radiance
             if pol == "parallel" and hit.any():
-                val = val + specular_radiance(p, n, v, pos, em, obj.eta, obj.specular_roughness)
+                val = val + specular_radiance(p, n, v, pos, em, obj.eta, obj.specular_roughness,
+                                              occluder=_shadow_engine(obj))
             img[hit] = val
             frames[(name, pol)] = finish(img)
     normals = np.full((H, W, 3), np.nan)

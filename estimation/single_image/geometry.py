@@ -1,7 +1,7 @@
 """Patches of a mesh seen by a camera, the lights, and the irradiance they put on each patch."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from typing import Any, Union
 
 import numpy as np
@@ -9,6 +9,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from ..forward import irradiance_directional, irradiance_point_lights
 from ..rays import RayEngine
+from ..shadows import (ENV_SHADOW_ROWS, direction_visibility, environment_irradiance, is_convex_mesh,
+                       point_light_visibility)
 
 Array = NDArray[np.float64]
 
@@ -19,6 +21,9 @@ class Patches:
     """Surface patches of the object: all of them are light sources (c_k); the ``visible`` ones are observed.
 
     ``cos_out`` = n . (camera - x)/|camera - x| (the exit cosine for F_t(eta, w_o)).
+    ``occluder``: the mesh (as a :class:`estimation.rays.RayEngine`) that casts shadows on the patches, with
+    ``face_index`` (K,) the face each patch centre lies on (or None); None = no cast shadows (a convex object,
+    or shadows switched off): :func:`patch_irradiance` then uses max(0, n.l) only.
     """
 
     centers_mm: Array  # (K, 3)
@@ -26,12 +31,26 @@ class Patches:
     areas_mm2: Array  # (K,)
     cos_out: Array  # (K,)
     visible: NDArray[np.bool_]  # (K,)
+    occluder: RayEngine | None = field(default=None, compare=False, repr=False)
+    face_index: NDArray[np.intp] | None = field(default=None, compare=False, repr=False)
 
     def __post_init__(self) -> None:
         k = self.centers_mm.shape[0]
         if not (self.centers_mm.shape == (k, 3) and self.normals.shape == (k, 3) and self.areas_mm2.shape == (k,)
                 and self.cos_out.shape == (k,) and self.visible.shape == (k,)):
             raise ValueError("Patches: centers (K,3), normals (K,3), areas (K,), cos_out (K,), visible (K,)")
+        if self.face_index is not None and np.shape(self.face_index) != (k,):
+            raise ValueError(f"Patches: face_index must be (K,) = ({k},); got {np.shape(self.face_index)}")
+
+    @property
+    def shadows(self) -> bool:
+        """True when the irradiance of these patches includes cast shadows (an ``occluder`` is set)."""
+        return self.occluder is not None
+
+    def with_shadows(self, occluder: RayEngine | None, face_index: ArrayLike | None = None) -> "Patches":
+        """The same patches with cast shadows from ``occluder`` (None: without shadows)."""
+        fi = None if (occluder is None or face_index is None) else np.asarray(face_index, dtype=np.intp)
+        return replace(self, occluder=occluder, face_index=fi)
 
     @property
     def visible_index(self) -> NDArray[np.intp]:
@@ -72,7 +91,8 @@ def occluded_from(engine: RayEngine, points_mm: Array, target_mm: Array, own_fac
 
 
 def patches_from_mesh(mesh: Any, camera: Any, *, cos_min: float = float(np.cos(np.radians(70.0))),
-                      occlusion: Union[bool, str] = "auto", max_edge_mm: float | None = None) -> Patches:
+                      occlusion: Union[bool, str] = "auto", shadows: Union[bool, str] = "auto",
+                      max_edge_mm: float | None = None) -> Patches:
     """Faces of a ``trimesh.Trimesh`` as patches (centroids, face normals, areas) with camera visibility.
 
     ``camera``: an object with ``center_mm`` (e.g. :class:`estimation.camera.PinholeCamera`, whose ``project``
@@ -81,6 +101,9 @@ def patches_from_mesh(mesh: Any, camera: Any, *, cos_min: float = float(np.cos(n
     F_t(w_o) explodes there), lies in the frame, and (``occlusion``) nothing blocks the segment to the camera
     (one ray per patch, :func:`occluded_from`): "auto" tests occlusion only for non-convex meshes (back-face
     culling is exact for convex ones).
+    ``shadows``: cast shadows in :func:`patch_irradiance` (shadow rays against this mesh,
+    :mod:`estimation.shadows`); "auto" = on for meshes that are not convex (:func:`estimation.shadows.is_convex_mesh`;
+    a convex mesh casts none, and its irradiance stays exactly max(0, n.l)), True = always, False = never.
     ``max_edge_mm`` subdivides the mesh first (``trimesh.remesh.subdivide_to_size``).
     """
     import trimesh
@@ -98,12 +121,24 @@ def patches_from_mesh(mesh: Any, camera: Any, *, cos_min: float = float(np.cos(n
         uv, z = camera.project(centers)
         visible &= (z > 0) & (uv[:, 0] >= -0.5) & (uv[:, 0] <= camera.width_px - 0.5) \
             & (uv[:, 1] >= -0.5) & (uv[:, 1] <= camera.height_px - 0.5)
-    test = (not bool(mesh.is_convex)) if occlusion == "auto" else bool(occlusion)
-    if test and visible.any():
-        idx = np.flatnonzero(visible)
+    for name, value in (("occlusion", occlusion), ("shadows", shadows)):
+        if not (value == "auto" or isinstance(value, (bool, np.bool_))):
+            raise ValueError(f"patches_from_mesh: {name} must be 'auto', True or False; got {value!r}")
+    convex: bool | None = None
+    if occlusion == "auto" or shadows == "auto":
+        convex = is_convex_mesh(mesh.vertices, mesh.faces)
+    test = (not convex) if occlusion == "auto" else bool(occlusion)
+    cast = (not convex) if shadows == "auto" else bool(shadows)
+    engine = None
+    if (test and visible.any()) or cast:
         engine = RayEngine(np.asarray(mesh.vertices, dtype=np.float64), np.asarray(mesh.faces))
+    if test and visible.any():
+        assert engine is not None
+        idx = np.flatnonzero(visible)
         blocked = occluded_from(engine, centers[idx], cam_pos, idx)
         visible[idx[blocked]] = False
+    if cast:
+        return Patches(centers, normals, areas, cos_out, visible, engine, np.arange(len(centers), dtype=np.intp))
     return Patches(centers, normals, areas, cos_out, visible)
 
 
@@ -146,10 +181,16 @@ class PointLights:
 
 @dataclass(frozen=True)
 class DirectionalLights:
-    """Distant lights: unit directions towards the light (L, 3) and radiance x solid angle weights (L, C)."""
+    """Distant lights: unit directions towards the light (L, 3) and radiance x solid angle weights (L, C).
+
+    ``grid_shape`` (H, W): the directions are the pixels of a lat-long environment map (any rotation of
+    :meth:`EnvironmentMap.directions_and_weights`), row-major: cast shadows are then computed per visibility cell
+    (``shadow_rows``, as for :class:`EnvironmentMap`) instead of one ray per direction."""
 
     directions: ArrayLike
     radiance_weights: ArrayLike
+    grid_shape: tuple[int, int] | None = None
+    shadow_rows: int = ENV_SHADOW_ROWS
 
 
 @dataclass(frozen=True)
@@ -160,11 +201,21 @@ class EnvironmentMap:
     straight up) and azimuth phi = 2 pi (j + 0.5)/W from +x towards +y:
     w = (sin theta cos phi, sin theta sin phi, cos theta), pointing from the object towards the environment.
     Solid angle of a pixel: sin theta (pi/H)(2 pi/W). Maps larger than ``max_size`` rows are box-downsampled
-    (rows and columns by the same integer factor) before use. No shadowing (convex objects).
+    (rows and columns by the same integer factor) before use. Cast shadows (patches with an ``occluder``):
+    per-patch visibility of ``shadow_rows`` x 2 ``shadow_rows`` cells of the map
+    (:func:`estimation.shadows.environment_irradiance`, its stated accuracy).
     """
 
     radiance: ArrayLike
     max_size: int = 64
+    shadow_rows: int = ENV_SHADOW_ROWS
+
+    def grid_shape(self) -> tuple[int, int]:
+        """(rows, columns) of the map after downsampling: the grid of :meth:`directions_and_weights`."""
+        img = np.asarray(self.radiance)
+        h, w = img.shape[:2]
+        f = max(1, int(np.ceil(h / self.max_size)))
+        return (h // f, w // f) if f > 1 else (h, w)
 
     def directions_and_weights(self) -> tuple[Array, Array]:
         img = np.asarray(self.radiance, dtype=np.float64)
@@ -187,19 +238,35 @@ class EnvironmentMap:
 Lights = Union[PointLights, DirectionalLights, EnvironmentMap, ArrayLike]
 
 
-def patch_irradiance(patches: Patches, lights: Lights, eta: float) -> Array:
+def patch_irradiance(patches: Patches, lights: Lights, eta: float, *, shadows: bool = True) -> Array:
     """Fresnel-transmitted irradiance E_t per patch (K, C) (the seed's c_k / A_k, Eq. 12).
 
     ``lights``: :class:`PointLights`, :class:`DirectionalLights`, :class:`EnvironmentMap`, or an array (K, C)
-    or (K,) that already is E_t per patch.
+    or (K,) that already is E_t per patch. Cast shadows (:mod:`estimation.shadows`) when the patches carry an
+    ``occluder`` (:func:`patches_from_mesh` sets one for non-convex meshes) and ``shadows``: one shadow ray per
+    patch and point or distant light, per-cell visibility for environment maps; otherwise max(0, n.l) only.
     """
+    eng = patches.occluder if shadows else None
+    own = patches.face_index
     if isinstance(lights, PointLights):
+        vis = None if eng is None else point_light_visibility(eng, patches.centers_mm, patches.normals,
+                                                               lights.positions_mm, own_face=own)
         return irradiance_point_lights(patches.centers_mm, patches.normals, lights.positions_mm, lights.intensity,
-                                       eta)
+                                       eta, visibility=vis)
     if isinstance(lights, DirectionalLights):
-        return irradiance_directional(patches.normals, lights.directions, lights.radiance_weights, eta)
+        if eng is not None and lights.grid_shape is not None:
+            return environment_irradiance(eng, patches.centers_mm, patches.normals, lights.directions,
+                                          lights.radiance_weights, lights.grid_shape, eta, rows=lights.shadow_rows,
+                                          own_face=own)
+        vis = None if eng is None else direction_visibility(eng, patches.centers_mm, patches.normals,
+                                                             lights.directions, own_face=own)
+        return irradiance_directional(patches.normals, lights.directions, lights.radiance_weights, eta,
+                                      visibility=vis)
     if isinstance(lights, EnvironmentMap):
         d, w = lights.directions_and_weights()
+        if eng is not None:
+            return environment_irradiance(eng, patches.centers_mm, patches.normals, d, w, lights.grid_shape(), eta,
+                                          rows=lights.shadow_rows, own_face=own)
         return irradiance_directional(patches.normals, d, w, eta)
     e = np.asarray(lights, dtype=np.float64)
     if e.ndim == 1:
