@@ -27,7 +27,7 @@ The noise of a normal field is estimated from its second differences (robust MAD
 little to them): sigma^2 = (1.4826 MAD)^2 / 6 per component.
 
 References: Ma et al. 2007; Zhu, Peers, Debevec, Ghosh (the seed); Jensen et al. 2001; ``docs/gradients.md``
-sec. 7; ``shared/reference/science.md`` sec. 1, 3-4.
+sec. 9; ``shared/reference/science.md`` sec. 1, 3-4.
 """
 from __future__ import annotations
 

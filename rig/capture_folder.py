@@ -802,14 +802,12 @@ def _strip_gradients(prov: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def _check_reference(cap: Capture, reference: Mapping[str, Any]) -> None:
-    """--reference needs a known sphere and an LED calibration (it renders both); refuse clearly otherwise."""
+    """--reference needs a known sphere (it renders it); refuse clearly otherwise. Ideal gradients are rendered with
+    a dense synthetic LED set (:func:`rig.folder_diffusion.ideal_reference_leds`)."""
     if cap.geometry is None:
         raise ConfigError(str(cap.file), "object.shape", "shape = \"sphere\" with center_mm and radius_mm: "
                           "--reference renders the known sphere by Monte Carlo, and corrects only a sphere's "
                           "estimate", "no sphere ([object] missing or shape = \"unknown\")")
-    if cap.leds.ideal:
-        raise ConfigError(str(cap.file), "leds.ideal", "an LED calibration (file = \"leds.csv\" or positions_mm + "
-                          "intensity): --reference renders the capture's LEDs", "ideal = true")
     for k, lo in (("spp", 2), ("iterations", 1), ("seed", 0)):
         v = reference.get(k)
         if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < lo):
@@ -823,13 +821,18 @@ def _reference_summary(cap: Capture, reference: Mapping[str, Any], leds: LedRig 
     from .folder_reference import (REFERENCE_ITERATIONS, REFERENCE_SEED, REFERENCE_SPP,
                                    reference_corrected_sphere)
 
-    assert cap.geometry is not None and leds is not None
-    assert cap.leds.positions_mm is not None and cap.leds.intensity is not None
+    assert cap.geometry is not None
+    led_pos, led_int = cap.leds.positions_mm, cap.leds.intensity
+    if cap.leds.ideal:      # continuous gradients: the renderer sees LEDs as a distant map anyway
+        from .folder_diffusion import ideal_reference_leds
+        led_pos, led_int = ideal_reference_leds()
+        leds = LedRig.from_positions(led_pos, led_int)
+    assert leds is not None and led_pos is not None and led_int is not None
     region = np.asarray(obj, dtype=bool) & ~np.asarray(maps.masks.saturated).any(axis=-1)
     try:
         out, _ = reference_corrected_sphere(
-            camera=cap.camera, leds=leds, led_positions_mm=cap.leds.positions_mm,
-            led_intensity=cap.leds.intensity, frame_keys=[f.key for f in cap.frames],
+            camera=cap.camera, leds=leds, led_positions_mm=led_pos,
+            led_intensity=led_int, frame_keys=[f.key for f in cap.frames],
             exposure_s={f.key: f.exposure_s for f in cap.frames}, albedo_scale=scale, eta=eta,
             reference_normal=n_ref, center_mm=cap.geometry.center_mm, radius_mm=cap.geometry.radius_mm,
             true_normals=normals, region=region, folder_maps=folder_maps, observed_maps=maps,
@@ -947,7 +950,7 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
     if any(dark):
         mark_channels_unknown(maps, dark)
         notes.append("channel(s) " + ", ".join("RGB"[c] for c in range(3) if dark[c]) + " unknown: the median "
-                     "full-on signal over the object is within its noise or below dark_level "
+                     "full-on signal over the object is below max(dark_level, its pixel noise) "
                      f"({dark_info['median_full_signal']} vs noise {dark_info['pixel_noise']})")
     known = ~maps.unknown
     diffusion = None
@@ -962,6 +965,9 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
                               method=method, model=model)
         diffusion = est.maps
         diff_summary = {"estimator": f"grounded {method} (docs/gradients.md sec. 5)", **est.summary.as_dict()}
+        if method == "sphere":      # the dipole's measured shortening bias widens the intervals (issue 16)
+            from estimation.sphere_bias import widen_sphere_summary
+            diff_summary = widen_sphere_summary(diff_summary, cap.geometry.radius_mm, rad.eta)
         if reference is not None:
             ref_summary = _reference_summary(cap, reference, leds, scale, rad.eta, n_ref, normals, obj, maps,
                                              folder_maps, tile_rows or 256)
@@ -976,7 +982,7 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
         diff_summary, relief_files = relief_estimate(maps, tn, source, cap.camera, obj, Path(out_dir), fmt,
                                                      relief_window_px or RELIEF_WINDOW_PX)
         notes.append("diffusion from the relief blur of the diffuse normals against the " + source
-                     + " (docs/gradients.md sec. 7)")
+                     + " (docs/gradients.md sec. 9)")
     else:
         diff_summary = {"estimator": "grounded", "status": ["unknown"] * 3,
                         "reason": "no geometry ([object] shape = \"sphere\" with center_mm, radius_mm): a region "
@@ -996,12 +1002,24 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
             cmp = compare_estimates(seed_est, diffusion, region=obj)
             seed_summary["versus_grounded"] = {"median_ratio": cmp.median_ratio,
                                                "fraction_disagree": cmp.fraction_disagree, "rel_tol": cmp.rel_tol}
+    from .folder_diffusion import albedo_apparent
+    n_app = geo_normals if geo_normals is not None else (
+        cap.relief.normals if cap.relief is not None else maps.specular_normals)
+    alb_app = albedo_apparent(maps, n_app, rad.eta, leds, n_ref)
+    alb_app[maps.unknown] = np.nan
     summary: dict[str, Any] = {
         "capture": str(cap.folder), "name": cap.name, "out_dir": str(Path(out_dir)), "format": fmt,
         "mode": "ideal" if cap.leds.ideal else "leds", "eta": rad.eta, "image_px": [W, H],
         "albedo_scale": scale, "albedo_scale_source": scale_prov["source"],
         "maps": {"known_pixels": [int(known[..., c].sum()) for c in range(3)],
                  "albedo_median": _channel_medians(maps.albedo, known),
+                 "R_d_median": _channel_medians(maps.albedo, known),
+                 "albedo_apparent_median": _channel_medians(alb_app, known),
+                 "albedo_definitions": {
+                     "R_d": "albedo_diffuse file: the dipole's total diffuse reflectance, exit Fresnel divided out: "
+                            "I_full = F_t(eta, n.v) E_full(n)/E_full(n_ref) R_d / albedo_scale",
+                     "albedo_apparent": "albedo_apparent file: pi L / E = R_d F_t(eta, n.v) E_t/E (Ma et al. "
+                                        "2007's diffuse albedo; a renderer's diffuse texture)"},
                  "diffuse_length_median": _channel_medians(maps.diffuse_length(), known),
                  "specular": maps.specular_normals is not None},
         "diffusion": diff_summary, "seed": seed_summary, "notes": notes,
@@ -1041,7 +1059,13 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
         raise ConfigError("--maps/--half", "maps", str(exc), select) from None
     except OSError as exc:
         raise CaptureError(f"{out_dir}: cannot write the maps ({exc})") from exc
-    summary["files"] = {k: str(p) for k, p in {**files, **relief_files}.items()}
+    from .imageio import write_exr, write_float_tiff
+    app_path = Path(out_dir) / ("albedo_apparent" + (".exr" if fmt == "exr" else ".tif"))
+    try:
+        (write_exr if fmt == "exr" else write_float_tiff)(app_path, alb_app)
+    except OSError as exc:
+        raise CaptureError(f"{out_dir}: cannot write the maps ({exc})") from exc
+    summary["files"] = {k: str(p) for k, p in {**files, **relief_files, "albedo_apparent": app_path}.items()}
     summary["seconds_maps"] = t_maps
     summary["seconds"] = time.perf_counter() - t0
     return jsonable(summary)

@@ -476,7 +476,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write normals and albedos as EXR HALF (float16); the diffusion maps stay float32")
     q.add_argument("--relief-window-px", type=_int_at_least(16), default=None, metavar="N",
                    help="without a sphere: window (pixels) of the per-window relief-blur fit (default 64; "
-                        "docs/gradients.md sec. 7)")
+                        "docs/gradients.md sec. 9)")
     q.add_argument("--reference", action="store_true",
                    help="known sphere only: also correct the sphere summary by Monte Carlo renders of the same "
                         "capture (one render of every pattern per iteration; the per-pixel maps stay "

@@ -11,7 +11,7 @@ subsurface transport (:mod:`estimation.relief`). The true normals come from the 
 
 Per window of ``window_px`` pixels and per channel: l', l_d, D, sigma_s', sigma_a, alpha' with intervals and a
 status (ok / weak / unknown), written as maps (``relief_<param>.exr`` and ``_lo`` / ``_hi``, ``relief_status``),
-and a region summary over the object mask. Documented in ``docs/gradients.md`` sec. 7 and
+and a region summary over the object mask. Documented in ``docs/gradients.md`` sec. 9 and
 ``docs/capture-folder.md``.
 """
 from __future__ import annotations
@@ -111,7 +111,7 @@ def relief_estimate(maps: Any, true_normals: NDArray[np.float64], source: str, c
             files[key] = writer(out / f"{key}{ext}", fit.pixel_map(name, (H, W), which))
     files["relief_status"] = writer(out / f"relief_status{ext}", fit.pixel_map("status", (H, W)))
     counts = {s: [int((fit.status[..., c] == s).sum()) for c in range(3)] for s in ("ok", "weak", "unknown")}
-    summary = {"estimator": "relief blur (estimation.relief; docs/gradients.md sec. 7)",
+    summary = {"estimator": "relief blur (estimation.relief; docs/gradients.md sec. 9)",
                "true_normals": source, "pixel_mm": px, "window_px": fit.window_px,
                "windows": [int(fit.origins_px.shape[0]), int(fit.origins_px.shape[1])], "window_status": counts,
                "relief_rms_rad_median": float(np.nanmedian(fit.relief_rms_rad))
@@ -123,12 +123,13 @@ def relief_estimate(maps: Any, true_normals: NDArray[np.float64], source: str, c
 
 
 def dark_channels(images: Any, exposure_s: Any, region: NDArray[np.bool_], dark_level: float,
-                  noise_sigmas: float = 3.0) -> tuple[list[bool], dict[str, Any]]:
+                  noise_sigmas: float = 1.0) -> tuple[list[bool], dict[str, Any]]:
     """Channels whose full-on signal over ``region`` is not above its noise: unknown as a whole (issue 16).
 
     The ambient-subtracted cross-polarized full-on signal (``full``, else ``a + a_c`` of an axis) is expressed in
     frame values at the full pattern's exposure; a channel is dark when its median over the region is below
-    max(``dark_level``, ``noise_sigmas`` x its per-pixel noise). The noise is the robust standard deviation of
+    max(``dark_level``, ``noise_sigmas`` x its per-pixel noise) (default 1: the signal within its noise). The
+    noise is the robust standard deviation of
     horizontal neighbour differences / sqrt 2 (a smooth signal contributes little). The per-pixel dark test of
     :func:`estimation.gradients.compute_maps` alone keeps the noise-high pixels of a dark channel and so reports
     an albedo biased high; this test removes the whole channel instead. Returns (dark per channel, details).
@@ -176,4 +177,48 @@ def mark_channels_unknown(maps: Any, channels: list[bool]) -> None:
         maps.masks.dark[..., c] = True
         maps.albedo[..., c] = np.nan
         maps.diffuse_vectors[..., c, :] = np.nan
-        maps.diffuse_normals[..., c, :] = np.nan
+        if isinstance(maps.diffuse_normals, np.ndarray):      # else derived from diffuse_vectors on access
+            maps.diffuse_normals[..., c, :] = np.nan
+
+
+def albedo_apparent(maps: Any, normals: Any, eta: float, leds: Any, reference_normal: Any) -> NDArray[np.float32]:
+    """The apparent diffuse albedo pi L / E (H, W, 3) beside the maps' R_d (issue 16; docs/gradients.md sec. 3).
+
+    With Jensen's boundary terms the diffuse radiance is L = F_t(eta, n.v) R_d E_t / pi, so
+    ``albedo_apparent = R_d * F_t(eta, n.v) * E_t/E``: what Ma et al. 2007 call the diffuse albedo and what a
+    renderer takes as a diffuse texture (8-10 % below R_d at eta 1.3 viewed head-on). E_t/E is the full pattern's
+    Fresnel-transmitted over plain irradiance at ``reference_normal`` (exact for ideal gradients; for LEDs exact
+    at n_ref), n the given ``normals`` (H, W, 3) (sphere or relief geometry, else the specular normals), else each
+    channel's diffuse normal; v the maps' view directions.
+    """
+    from estimation.fresnel import fresnel_transmittance
+    from estimation.gradients import _full_transmitted_over_plain
+
+    view = np.asarray(maps.view_dirs, dtype=np.float64)
+    ratio = _full_transmitted_over_plain(eta, leds, reference_normal)
+    out = np.empty(maps.albedo.shape, np.float32)
+    for c in range(3):
+        n = np.asarray(normals, dtype=np.float64) if normals is not None else np.asarray(
+            maps.diffuse_normals[..., c, :], dtype=np.float64)
+        cos = np.clip(np.sum(n * view, axis=-1), 0.0, 1.0)
+        ft = fresnel_transmittance(eta, cos)
+        out[..., c] = np.asarray(maps.albedo[..., c], dtype=np.float64) * ft * ratio[c]
+    return out
+
+
+IDEAL_REFERENCE_FREQUENCY = 14
+IDEAL_REFERENCE_DISTANCE_MM = 1.0e5
+
+
+def ideal_reference_leds(frequency: int = IDEAL_REFERENCE_FREQUENCY, distance_mm: float = IDEAL_REFERENCE_DISTANCE_MM
+                         ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """A dense synthetic LED set standing in for ideal continuous gradients in ``--reference`` renders: a full
+    geodesic sphere (10 f^2 + 2 LEDs: 1962, ~4.6 deg apart for f = 14) at 100 m (no near field), equal
+    intensities giving each LED the irradiance 4 pi / N (uniform radiance 1 over the sphere). The Monte Carlo
+    renderer reads them as a distant map of 2-degree cells (:mod:`simulators.mc_capture`), i.e. a piecewise-constant
+    approximation of the continuous gradients; the rendered frames are then reduced with the folder's ideal model."""
+    from .geometry import led_layout
+
+    pos, _ = led_layout(int(frequency), float(distance_mm), -90.0)
+    inten = np.full((len(pos), 3), 4.0 * np.pi / len(pos) * float(distance_mm) ** 2)
+    return pos, inten
