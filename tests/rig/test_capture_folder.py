@@ -245,8 +245,16 @@ def test_marble_capture_recovers_truth(tmp_path, capsys, marble_scene, fmt, leds
     tr = marble_scene["truth"]
     out = folder / "maps"
     assert s["out_dir"] == str(out) and s["mode"] == "leds" and s["maps"]["specular"]
-    assert s["diffusion"]["status"] == ["ok", "ok", "ok"]
+    # issue 16: the reported intervals include the dipole's measured shortening bias against real transport
+    # (estimation.sphere_bias), which on a 10 mm marble sphere spans > 3x in D: "weak", pointing to --reference;
+    # the plain order-statistic intervals (this render IS the dipole) are kept in model_shortening_bias
+    assert set(s["diffusion"]["status"]) <= {"ok", "weak"}
     d = s["diffusion"]
+    plain = d["model_shortening_bias"]["plain_intervals"]
+    for k in ("D_mm", "sigma_s_prime_per_mm"):
+        lo, hi = np.asarray(plain[k]).T
+        assert np.all(lo <= np.asarray(tr[k]) * 1.005) and np.all(np.asarray(tr[k]) * 0.995 <= hi), k
+        assert np.all(hi / lo < 1.1), k
     np.testing.assert_allclose(d["albedo"]["value"], tr["albedo"], rtol=2e-3)
     np.testing.assert_allclose(d["R_d"]["value"], tr["R_d"], rtol=2e-3)
     np.testing.assert_allclose(d["D_mm"]["value"], tr["D_mm"], rtol=1e-2)
