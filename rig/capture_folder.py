@@ -944,14 +944,8 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
         raise CaptureError(f"{cap.file}: gradient maps failed: {exc}") from exc
     t_maps = time.perf_counter() - t0
     notes = list(cap.notes)
-    from .folder_diffusion import dark_channels, mark_channels_unknown
-    sig_region = ~np.asarray(maps.masks.background) if obj is None else np.asarray(obj, dtype=bool)
-    dark, dark_info = dark_channels(cap.images, exposure, sig_region, rad.dark_level)
-    if any(dark):
-        mark_channels_unknown(maps, dark)
-        notes.append("channel(s) " + ", ".join("RGB"[c] for c in range(3) if dark[c]) + " unknown: the median "
-                     "full-on signal over the object is below max(dark_level, its pixel noise) "
-                     f"({dark_info['median_full_signal']} vs noise {dark_info['pixel_noise']})")
+    from .folder_diffusion import apply_dark_channels, relief_branch, write_albedo_apparent
+    apply_dark_channels(cap, maps, obj, exposure, notes)
     known = ~maps.unknown
     diffusion = None
     diff_summary: dict[str, Any]
@@ -974,15 +968,7 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
             notes.append("diffusion_reference_corrected: the sphere summary corrected by Monte Carlo reference "
                          "renders; the per-pixel maps are uncorrected")
     elif cap.relief is not None or maps.specular_normals is not None:
-        from .folder_diffusion import RELIEF_WINDOW_PX, relief_estimate
-        if cap.relief is not None:
-            tn, source = cap.relief.normals, f"{cap.relief.source} {_rel(cap.relief.file, cap.folder)}"
-        else:
-            tn, source = np.asarray(maps.specular_normals, dtype=np.float64), "specular normals (shape unknown)"
-        diff_summary, relief_files = relief_estimate(maps, tn, source, cap.camera, obj, Path(out_dir), fmt,
-                                                     relief_window_px or RELIEF_WINDOW_PX)
-        notes.append("diffusion from the relief blur of the diffuse normals against the " + source
-                     + " (docs/gradients.md sec. 9)")
+        diff_summary, relief_files = relief_branch(cap, maps, obj, Path(out_dir), fmt, relief_window_px, notes)
     else:
         diff_summary = {"estimator": "grounded", "status": ["unknown"] * 3,
                         "reason": "no geometry ([object] shape = \"sphere\" with center_mm, radius_mm): a region "
@@ -1002,11 +988,7 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
             cmp = compare_estimates(seed_est, diffusion, region=obj)
             seed_summary["versus_grounded"] = {"median_ratio": cmp.median_ratio,
                                                "fraction_disagree": cmp.fraction_disagree, "rel_tol": cmp.rel_tol}
-    from .folder_diffusion import albedo_apparent
-    n_app = geo_normals if geo_normals is not None else (
-        cap.relief.normals if cap.relief is not None else maps.specular_normals)
-    alb_app = albedo_apparent(maps, n_app, rad.eta, leds, n_ref)
-    alb_app[maps.unknown] = np.nan
+    alb_app, app_write = write_albedo_apparent(cap, maps, geo_normals, leds, n_ref, Path(out_dir), fmt)
     summary: dict[str, Any] = {
         "capture": str(cap.folder), "name": cap.name, "out_dir": str(Path(out_dir)), "format": fmt,
         "mode": "ideal" if cap.leds.ideal else "leds", "eta": rad.eta, "image_px": [W, H],
@@ -1059,10 +1041,8 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
         raise ConfigError("--maps/--half", "maps", str(exc), select) from None
     except OSError as exc:
         raise CaptureError(f"{out_dir}: cannot write the maps ({exc})") from exc
-    from .imageio import write_exr, write_float_tiff
-    app_path = Path(out_dir) / ("albedo_apparent" + (".exr" if fmt == "exr" else ".tif"))
     try:
-        (write_exr if fmt == "exr" else write_float_tiff)(app_path, alb_app)
+        app_path = app_write()
     except OSError as exc:
         raise CaptureError(f"{out_dir}: cannot write the maps ({exc})") from exc
     summary["files"] = {k: str(p) for k, p in {**files, **relief_files, "albedo_apparent": app_path}.items()}

@@ -222,3 +222,52 @@ def ideal_reference_leds(frequency: int = IDEAL_REFERENCE_FREQUENCY, distance_mm
     pos, _ = led_layout(int(frequency), float(distance_mm), -90.0)
     inten = np.full((len(pos), 3), 4.0 * np.pi / len(pos) * float(distance_mm) ** 2)
     return pos, inten
+
+
+# --------------------------------------------------------------------------------------------------------------
+# the steps rig.capture_folder.estimate_capture calls
+# --------------------------------------------------------------------------------------------------------------
+def apply_dark_channels(cap: Any, maps: Any, obj: Any, exposure: Any, notes: list[str]) -> list[bool]:
+    """:func:`dark_channels` over the object (else the non-background pixels) and :func:`mark_channels_unknown`;
+    appends a note naming the channels. Returns the dark flags."""
+    region = ~np.asarray(maps.masks.background) if obj is None else np.asarray(obj, dtype=bool)
+    dark, info = dark_channels(cap.images, exposure, region, cap.radiometry.dark_level)
+    if any(dark):
+        mark_channels_unknown(maps, dark)
+        notes.append("channel(s) " + ", ".join("RGB"[c] for c in range(3) if dark[c]) + " unknown: the median "
+                     "full-on signal over the object is below max(dark_level, its pixel noise) "
+                     f"({info['median_full_signal']} vs noise {info['pixel_noise']})")
+    return dark
+
+
+def relief_branch(cap: Any, maps: Any, obj: Any, out_dir: Path, fmt: str, window_px: int | None,
+                  notes: list[str]) -> tuple[dict[str, Any], dict[str, Path]]:
+    """The relief estimate with the folder's relief geometry, else the specular normals (shape unknown)."""
+    if cap.relief is not None:
+        try:
+            rel = cap.relief.file.relative_to(cap.folder)
+        except ValueError:
+            rel = cap.relief.file
+        tn, source = cap.relief.normals, f"{cap.relief.source} {rel}"
+    else:
+        tn, source = np.asarray(maps.specular_normals, dtype=np.float64), "specular normals (shape unknown)"
+    out = relief_estimate(maps, tn, source, cap.camera, obj, out_dir, fmt, window_px or RELIEF_WINDOW_PX)
+    notes.append("diffusion from the relief blur of the diffuse normals against the " + source
+                 + " (docs/gradients.md sec. 9)")
+    return out
+
+
+def write_albedo_apparent(cap: Any, maps: Any, geo_normals: Any, leds: Any, n_ref: Any, out_dir: Path, fmt: str
+                          ) -> tuple[NDArray[np.float32], Any]:
+    """The apparent albedo (NaN where the maps are unknown) and a function writing it as ``albedo_apparent``."""
+    from .imageio import write_exr, write_float_tiff
+
+    n = geo_normals if geo_normals is not None else (
+        cap.relief.normals if cap.relief is not None else maps.specular_normals)
+    alb = albedo_apparent(maps, n, cap.radiometry.eta, leds, n_ref)
+    alb[np.asarray(maps.unknown)] = np.nan
+    path = out_dir / ("albedo_apparent" + (".exr" if fmt == "exr" else ".tif"))
+
+    def write() -> Path:
+        return (write_exr if fmt == "exr" else write_float_tiff)(path, alb)
+    return alb, write
