@@ -355,7 +355,7 @@ A 5 mm skin1 sphere (science.md sec. 2, eta 1.3; truth D = 0.432 / 0.317 / 0.224
 Monte Carlo renderer (not the estimator's dipole): 24 x 24 px pinhole, 256 spp, ideal drive of 362 LEDs as a
 distant map, the sensor's expected values. Measured (seed 0): plain D 0.764 / 0.532 / 0.489 mm (+77 / +68 / +118 %)
 with order-statistic intervals [0.73, 0.81], [0.51, 0.55], [0.46, 0.51] that miss the truth; widened
-(estimation.sphere_bias) [0.17, 0.81], [0.14, 0.55], [0.09, 0.51]: covered, G and B "weak", R "censored"."""
+(estimation.sphere_bias) [0.17, 2.3], [0.14, 0.80], [0.09, 0.64]: covered, G and B "weak", R "censored"."""
     from estimation.sphere_bias import widen_sphere_summary
 
     pos, inten, patterns, _, _ = rig
