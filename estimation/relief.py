@@ -247,9 +247,9 @@ def fit_relief_windows(diffuse_normals: ArrayLike, true_normals: ArrayLike, albe
     weight inside ``margin_px`` (default window/4) of the edge: a diffuse normal depends on the relief within a few
     l_d, which the window must contain (margin >~ 2 l_d). See the module docstring for the interval and status.
     """
-    Dn = np.asarray(diffuse_normals, dtype=np.float64)
-    Tn = np.asarray(true_normals, dtype=np.float64)
-    alb = np.asarray(albedo, dtype=np.float64)
+    Dn = np.asarray(diffuse_normals)          # kept in their dtype (float32 maps): each window is cast to float64
+    Tn = np.asarray(true_normals)
+    alb = np.asarray(albedo)
     H, W = Tn.shape[:2]
     if Tn.shape != (H, W, 3) or Dn.shape != (H, W, 3, 3) or alb.shape != (H, W, 3):
         raise ValueError("need diffuse_normals (H, W, 3, 3), true_normals (H, W, 3) and albedo (H, W, 3)")
@@ -283,7 +283,7 @@ def fit_relief_windows(diffuse_normals: ArrayLike, true_normals: ArrayLike, albe
     for i, r0 in enumerate(rows):
         for j, c0 in enumerate(cols):
             sl = (slice(r0, r0 + win_px), slice(c0, c0 + win_px))
-            t = Tn[sl]
+            t = Tn[sl].astype(np.float64)
             ok_t = finite_t[sl]
             if ok_t.mean() < min_valid_fraction:
                 continue
@@ -295,10 +295,11 @@ def fit_relief_windows(diffuse_normals: ArrayLike, true_normals: ArrayLike, albe
             rms[i, j], noise[i, j] = rel_rms, sig_n
             relief_ok = rel_rms >= max(min_relief_snr * np.sqrt(2.0) * sig_n, min_relief_rad)
             for c in range(3):
-                d = Dn[sl][..., c, :]
-                ok = ok_t & v[sl][..., c] & np.isfinite(d).all(-1) & np.isfinite(alb[sl][..., c])
+                d = Dn[sl][..., c, :].astype(np.float64)
+                a_w = alb[sl][..., c].astype(np.float64)
+                ok = ok_t & v[sl][..., c] & np.isfinite(d).all(-1) & np.isfinite(a_w)
                 # unknown defaults: the whole searched range as interval
-                a_med = float(np.median(alb[sl][..., c][ok])) if ok.any() else float("nan")
+                a_med = float(np.median(a_w[ok])) if ok.any() else float("nan")
                 if ok.mean() < min_valid_fraction or not (0 < a_med < 1):
                     _put_unknown(ints, i, j, c, full_lo, full_hi, a_med, eta, fdr)
                     continue

@@ -97,9 +97,8 @@ def relief_estimate(maps: Any, true_normals: NDArray[np.float64], source: str, c
     tn = np.where(np.isfinite(true_normals).all(-1, keepdims=True), true_normals, np.nan)
     if region is not None:
         tn = np.where(np.asarray(region, dtype=bool)[..., None], tn, np.nan)
-    fit = fit_relief_windows(np.asarray(maps.diffuse_normals, dtype=np.float64), tn,
-                             np.asarray(maps.albedo, dtype=np.float64), px, float(maps.eta), window_px=window_px,
-                             valid=valid)
+    fit = fit_relief_windows(np.asarray(maps.diffuse_normals), tn, np.asarray(maps.albedo), px, float(maps.eta),
+                             window_px=window_px, valid=valid)   # float32 maps: cast per window
     reg = summarize_relief(fit, region)
     files: dict[str, Path] = {}
     out = Path(out_dir)
@@ -181,7 +180,8 @@ def mark_channels_unknown(maps: Any, channels: list[bool]) -> None:
             maps.diffuse_normals[..., c, :] = np.nan
 
 
-def albedo_apparent(maps: Any, normals: Any, eta: float, leds: Any, reference_normal: Any) -> NDArray[np.float32]:
+def albedo_apparent(maps: Any, normals: Any, eta: float, leds: Any, reference_normal: Any, rows: int = 256
+                    ) -> NDArray[np.float32]:
     """The apparent diffuse albedo pi L / E (H, W, 3) beside the maps' R_d (issue 16; docs/gradients.md sec. 3).
 
     With Jensen's boundary terms the diffuse radiance is L = F_t(eta, n.v) R_d E_t / pi, so
@@ -194,15 +194,18 @@ def albedo_apparent(maps: Any, normals: Any, eta: float, leds: Any, reference_no
     from estimation.fresnel import fresnel_transmittance
     from estimation.gradients import _full_transmitted_over_plain
 
-    view = np.asarray(maps.view_dirs, dtype=np.float64)
     ratio = _full_transmitted_over_plain(eta, leds, reference_normal)
+    H = maps.albedo.shape[0]
     out = np.empty(maps.albedo.shape, np.float32)
-    for c in range(3):
-        n = np.asarray(normals, dtype=np.float64) if normals is not None else np.asarray(
-            maps.diffuse_normals[..., c, :], dtype=np.float64)
-        cos = np.clip(np.sum(n * view, axis=-1), 0.0, 1.0)
-        ft = fresnel_transmittance(eta, cos)
-        out[..., c] = np.asarray(maps.albedo[..., c], dtype=np.float64) * ft * ratio[c]
+    for r0 in range(0, H, rows):        # row blocks: a 24 MP capture never holds a float64 copy of a full map
+        r1 = min(H, r0 + rows)
+        view = np.asarray(maps.view_dirs[r0:r1], dtype=np.float64)
+        for c in range(3):
+            n = np.asarray((normals[r0:r1] if normals is not None else maps.diffuse_normals[r0:r1, :, c, :]),
+                           dtype=np.float64)
+            cos = np.clip(np.sum(n * view, axis=-1), 0.0, 1.0)
+            out[r0:r1, :, c] = np.asarray(maps.albedo[r0:r1, :, c], dtype=np.float64) * fresnel_transmittance(
+                eta, cos) * ratio[c]
     return out
 
 
