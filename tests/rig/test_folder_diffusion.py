@@ -147,3 +147,20 @@ def test_a_dark_channel_in_float_frames_is_unknown(tmp_path, capsys) -> None:
     assert s["diffusion"]["status"][2] == "unknown"
     assert s["maps"]["known_pixels"][0] > 3000 and s["diffusion"]["status"][0] != "unknown"
     assert any("channel(s) B unknown" in n for n in s["notes"])
+
+
+def test_ketchup_relief_dark_channels_unknown_and_red_weak(tmp_path, capsys) -> None:
+    """tests/data/relief_ketchup: the same relief, ketchup (science.md sec. 2: sigma_s' 0.18 / 0.07 / 0.03, sigma_a
+    0.061 / 0.97 / 1.45 per mm; l_d 4.76 / 0.58 / 0.39 mm), 48 x 48 px of 0.25 mm, 64 spp (27 s to render). G and B
+    are dark (median full-on value 0.004 / 0.001 < dark_level 0.01): unknown, never a number. Red's l_d (4.8 mm)
+    is far beyond what a 12 mm map with a 3 mm margin can measure: measured l_d 0.41 mm (-91 %), but "weak" with
+    the interval [0.067, 51] mm that covers the truth."""
+    f = tmp_path / "ketchup"
+    shutil.copytree(DATA.parent / "relief_ketchup", f)
+    s = _run(f, capsys)
+    d = s["diffusion"]
+    assert d["status"] == ["weak", "unknown", "unknown"]
+    assert s["maps"]["albedo_median"][1:] == [None, None] and d["D_mm"]["value"][1:] == [None, None]
+    ssp, sa = np.array([0.18, 0.07, 0.03]), np.array([0.061, 0.97, 1.45])
+    lo, hi = d["l_d_mm"]["interval"][0]
+    assert lo <= 1 / np.sqrt(3 * sa[0] * (ssp[0] + sa[0])) <= hi and hi / lo > 10
