@@ -290,6 +290,7 @@ class Capture:
     seed: SeedSpec | None
     specular: bool
     notes: tuple[str, ...] = ()
+    relief: Any = None          # rig.folder_diffusion.ReliefGeometry ([object] shape = "relief") or None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -494,6 +495,14 @@ def _rotation(t: _Table, k: str) -> NDArray[np.float64]:
     return R
 
 
+def _default_up(direction: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The ``up`` a user did not write: +z, or +y when the camera looks (nearly) along z (docs/capture-folder.md)."""
+    n = float(np.linalg.norm(direction))
+    if n > 0 and abs(float(direction[2])) / n > 0.99:
+        return np.array([0.0, 1.0, 0.0])
+    return np.array([0.0, 0.0, 1.0])
+
+
 def _read_camera(file: str, data: dict[str, Any], shape: tuple[int, int]
                  ) -> tuple[PinholeCamera | OrthographicCamera, dict[str, Any]]:
     H, W = shape
@@ -530,7 +539,7 @@ def _read_camera(file: str, data: dict[str, Any], shape: tuple[int, int]
                 raise t.err("translation_mm", "only with rotation (OpenCV extrinsics R, t)", "translation_mm")
             C = t.vec("position_mm", 3)
             target = t.vec("look_at_mm", 3)
-            up = t.vec("up", 3, [0.0, 0.0, 1.0])
+            up = t.vec("up", 3) if t.has("up") else _default_up(target - C)
             try:
                 R = look_at_rotation(C, target, up)
             except ValueError:
@@ -552,7 +561,7 @@ def _read_camera(file: str, data: dict[str, Any], shape: tuple[int, int]
         R = _rotation(t, "rotation")
     else:
         d = t.vec("look_direction", 3)
-        up = t.vec("up", 3, [0.0, 0.0, 1.0])
+        up = t.vec("up", 3) if t.has("up") else _default_up(d)
         if np.linalg.norm(d) == 0:
             raise t.err("look_direction", "a non-zero direction (from the camera towards the object)", d.tolist())
         try:
@@ -621,23 +630,32 @@ def _read_mask(t: _Table, folder: Path, shape: tuple[int, int]) -> tuple[NDArray
     return a != 0, p
 
 
-def _read_object(file: str, folder: Path, data: dict[str, Any], shape: tuple[int, int]
-                 ) -> tuple[NDArray[np.bool_] | None, Path | None, SphereGeometry | None]:
+def _read_object(file: str, folder: Path, data: dict[str, Any], shape: tuple[int, int], camera: Any = None
+                 ) -> tuple[NDArray[np.bool_] | None, Path | None, SphereGeometry | None, Any]:
     if "object" not in data:
-        return None, None, None
+        return None, None, None, None
     if not isinstance(data["object"], dict):
         raise ConfigError(file, "object", "a table [object]", type(data["object"]).__name__)
-    t = _Table(file, data["object"], "object.", ("mask", "shape", "center_mm", "radius_mm"))
+    t = _Table(file, data["object"], "object.", ("mask", "shape", "center_mm", "radius_mm", "normals_file",
+                                                 "height_file"))
     mask, mask_file = _read_mask(t, folder, shape) if t.has("mask") else (None, None)
-    shape_kind = t.str("shape", "unknown", choices=("unknown", "sphere"))
+    shape_kind = t.str("shape", "unknown", choices=("unknown", "sphere", "relief"))
     geo = None
+    relief = None
     if shape_kind == "sphere":
         geo = SphereGeometry(t.vec("center_mm", 3), t.num("radius_mm", positive=True))
     else:
         for k in ("center_mm", "radius_mm"):
             if t.has(k):
                 raise t.err(k, "nothing unless shape = \"sphere\"", k)
-    return mask, mask_file, geo
+    if shape_kind == "relief":
+        from .folder_diffusion import read_relief_geometry
+        relief = read_relief_geometry(t, folder, shape, camera)
+    else:
+        for k in ("normals_file", "height_file"):
+            if t.has(k):
+                raise t.err(k, "nothing unless shape = \"relief\"", k)
+    return mask, mask_file, geo, relief
 
 
 def _read_seed(file: str, data: dict[str, Any]) -> SeedSpec | None:
@@ -702,12 +720,12 @@ def load_capture(folder: str | Path) -> Capture:
                                                         for a in _AXES):
             raise ConfigError(file, "radiometry.reference", "a cross-polarized full frame, or a gradient with its "
                               "complement (their sum is the full pattern), to measure the reference", None)
-    mask, mask_file, geo = _read_object(file, root, data, shape)
+    mask, mask_file, geo, relief = _read_object(file, root, data, shape, camera)
     seed = _read_seed(file, data)
     spec_ok, spec_note = _specular_possible(set(images))
     notes = tuple(n for n in (spec_note,) if n)
     return Capture(root, cfile, sha256_file(cfile), name, frames, images, leds, camera, cam_spec, radiometry, mask,
-                   mask_file, geo, seed, spec_ok, notes)
+                   mask_file, geo, seed, spec_ok, notes, relief)
 
 
 # ------------------------------------------------------------------------------------------------ estimate
@@ -784,14 +802,12 @@ def _strip_gradients(prov: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def _check_reference(cap: Capture, reference: Mapping[str, Any]) -> None:
-    """--reference needs a known sphere and an LED calibration (it renders both); refuse clearly otherwise."""
+    """--reference needs a known sphere (it renders it); refuse clearly otherwise. Ideal gradients are rendered with
+    a dense synthetic LED set (:func:`rig.folder_diffusion.ideal_reference_leds`)."""
     if cap.geometry is None:
         raise ConfigError(str(cap.file), "object.shape", "shape = \"sphere\" with center_mm and radius_mm: "
                           "--reference renders the known sphere by Monte Carlo, and corrects only a sphere's "
                           "estimate", "no sphere ([object] missing or shape = \"unknown\")")
-    if cap.leds.ideal:
-        raise ConfigError(str(cap.file), "leds.ideal", "an LED calibration (file = \"leds.csv\" or positions_mm + "
-                          "intensity): --reference renders the capture's LEDs", "ideal = true")
     for k, lo in (("spp", 2), ("iterations", 1), ("seed", 0)):
         v = reference.get(k)
         if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < lo):
@@ -805,13 +821,18 @@ def _reference_summary(cap: Capture, reference: Mapping[str, Any], leds: LedRig 
     from .folder_reference import (REFERENCE_ITERATIONS, REFERENCE_SEED, REFERENCE_SPP,
                                    reference_corrected_sphere)
 
-    assert cap.geometry is not None and leds is not None
-    assert cap.leds.positions_mm is not None and cap.leds.intensity is not None
+    assert cap.geometry is not None
+    led_pos, led_int = cap.leds.positions_mm, cap.leds.intensity
+    if cap.leds.ideal:      # continuous gradients: the renderer sees LEDs as a distant map anyway
+        from .folder_diffusion import ideal_reference_leds
+        led_pos, led_int = ideal_reference_leds()
+        leds = LedRig.from_positions(led_pos, led_int)
+    assert leds is not None and led_pos is not None and led_int is not None
     region = np.asarray(obj, dtype=bool) & ~np.asarray(maps.masks.saturated).any(axis=-1)
     try:
         out, _ = reference_corrected_sphere(
-            camera=cap.camera, leds=leds, led_positions_mm=cap.leds.positions_mm,
-            led_intensity=cap.leds.intensity, frame_keys=[f.key for f in cap.frames],
+            camera=cap.camera, leds=leds, led_positions_mm=led_pos,
+            led_intensity=led_int, frame_keys=[f.key for f in cap.frames],
             exposure_s={f.key: f.exposure_s for f in cap.frames}, albedo_scale=scale, eta=eta,
             reference_normal=n_ref, center_mm=cap.geometry.center_mm, radius_mm=cap.geometry.radius_mm,
             true_normals=normals, region=region, folder_maps=folder_maps, observed_maps=maps,
@@ -832,7 +853,8 @@ inside the output folder (deleted afterwards) instead of RAM: a 24 MP capture's 
 def estimate_capture(capture: Capture, out_dir: str | Path, fmt: str = "exr", tile_rows: int | None = None, *,
                      preview: str = "auto", memmap_min_px: int = MEMMAP_MIN_PX,
                      model: str = "dipole-jensen", maps: Any = None, half: bool = False,
-                     reference: Mapping[str, Any] | None = None) -> dict[str, Any]:
+                     reference: Mapping[str, Any] | None = None, relief_window_px: int | None = None
+                     ) -> dict[str, Any]:
     """Gradient maps (Ma et al. 2007), the grounded diffusion estimate (with a sphere) and the seed's D (with a
     seed calibration) for a loaded capture; writes the maps into ``out_dir`` (:func:`rig.maps_io.write_maps`) and
     returns a JSON-ready summary (per-channel medians, the diffusion summary with intervals, files, notes).
@@ -850,6 +872,11 @@ def estimate_capture(capture: Capture, out_dir: str | Path, fmt: str = "exr", ti
     :mod:`rig.folder_reference`): with a sphere and an LED calibration, the sphere summary is also corrected by
     Monte Carlo renders of the same capture (:func:`rig.folder_reference.reference_corrected_sphere`) and reported
     as ``diffusion_reference_corrected`` beside the uncorrected ``diffusion``; the per-pixel maps stay uncorrected.
+
+    Without a sphere: with ``[object] shape = "relief"`` (a normals or height file) or with specular normals
+    (parallel-polarized frames), the relief-blur fit per window of ``relief_window_px`` pixels (default
+    :data:`rig.folder_diffusion.RELIEF_WINDOW_PX`) and its region summary (:func:`rig.folder_diffusion.
+    relief_estimate`) are the ``diffusion`` summary; otherwise D, sigma_s', sigma_a are unknown.
     """
     from estimation.diffusion import check_grounded_model
 
@@ -864,7 +891,8 @@ def estimate_capture(capture: Capture, out_dir: str | Path, fmt: str = "exr", ti
                if capture.shape[0] * capture.shape[1] >= memmap_min_px else None)
     try:
         return _estimate_capture(capture, out_dir, fmt, tile_rows, preview,
-                                 None if scratch is None else Path(scratch.name), model, maps, half, reference)
+                                 None if scratch is None else Path(scratch.name), model, maps, half, reference,
+                                 relief_window_px)
     finally:
         if scratch is not None:
             scratch.cleanup()
@@ -872,7 +900,8 @@ def estimate_capture(capture: Capture, out_dir: str | Path, fmt: str = "exr", ti
 
 def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows: int | None, preview: str,
                       scratch: Path | None, model: str = "dipole-jensen", select: Any = None,
-                      half: bool = False, reference: Mapping[str, Any] | None = None) -> dict[str, Any]:
+                      half: bool = False, reference: Mapping[str, Any] | None = None,
+                      relief_window_px: int | None = None) -> dict[str, Any]:
     from estimation.diffusion import compare_estimates, diffusion_seed, estimate_sphere, sphere_geometry
     from estimation.gradients import compute_maps
 
@@ -914,10 +943,13 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
     except ValueError as exc:
         raise CaptureError(f"{cap.file}: gradient maps failed: {exc}") from exc
     t_maps = time.perf_counter() - t0
-    known = ~maps.unknown
     notes = list(cap.notes)
+    from .folder_diffusion import apply_dark_channels, relief_branch, write_albedo_apparent
+    apply_dark_channels(cap, maps, obj, exposure, notes)
+    known = ~maps.unknown
     diffusion = None
     diff_summary: dict[str, Any]
+    relief_files: dict[str, Path] = {}
     ref_summary: dict[str, Any] | None = None
     if cap.geometry is not None:
         assert normals is not None
@@ -927,17 +959,22 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
                               method=method, model=model)
         diffusion = est.maps
         diff_summary = {"estimator": f"grounded {method} (docs/gradients.md sec. 5)", **est.summary.as_dict()}
+        if method == "sphere":      # the dipole's measured shortening bias widens the intervals (issue 16)
+            from estimation.sphere_bias import widen_sphere_summary
+            diff_summary = widen_sphere_summary(diff_summary, cap.geometry.radius_mm, rad.eta)
         if reference is not None:
             ref_summary = _reference_summary(cap, reference, leds, scale, rad.eta, n_ref, normals, obj, maps,
                                              folder_maps, tile_rows or 256)
             notes.append("diffusion_reference_corrected: the sphere summary corrected by Monte Carlo reference "
                          "renders; the per-pixel maps are uncorrected")
+    elif cap.relief is not None or maps.specular_normals is not None:
+        diff_summary, relief_files = relief_branch(cap, maps, obj, Path(out_dir), fmt, relief_window_px, notes)
     else:
         diff_summary = {"estimator": "grounded", "status": ["unknown"] * 3,
                         "reason": "no geometry ([object] shape = \"sphere\" with center_mm, radius_mm): a region "
                                   "without curvature information carries no information about a length, so D, "
                                   "sigma_s' and sigma_a are unknown (docs/gradients.md sec. 5)"}
-        notes.append("diffusion unknown: no object geometry in capture.toml")
+        notes.append("diffusion unknown: no object geometry in capture.toml and no specular normals")
     seed_est = None
     seed_summary = None
     if cap.seed is not None:
@@ -951,12 +988,20 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
             cmp = compare_estimates(seed_est, diffusion, region=obj)
             seed_summary["versus_grounded"] = {"median_ratio": cmp.median_ratio,
                                                "fraction_disagree": cmp.fraction_disagree, "rel_tol": cmp.rel_tol}
+    alb_app, app_write = write_albedo_apparent(cap, maps, geo_normals, leds, n_ref, Path(out_dir), fmt)
     summary: dict[str, Any] = {
         "capture": str(cap.folder), "name": cap.name, "out_dir": str(Path(out_dir)), "format": fmt,
         "mode": "ideal" if cap.leds.ideal else "leds", "eta": rad.eta, "image_px": [W, H],
         "albedo_scale": scale, "albedo_scale_source": scale_prov["source"],
         "maps": {"known_pixels": [int(known[..., c].sum()) for c in range(3)],
                  "albedo_median": _channel_medians(maps.albedo, known),
+                 "R_d_median": _channel_medians(maps.albedo, known),
+                 "albedo_apparent_median": _channel_medians(alb_app, known),
+                 "albedo_definitions": {
+                     "R_d": "albedo_diffuse file: the dipole's total diffuse reflectance, exit Fresnel divided out: "
+                            "I_full = F_t(eta, n.v) E_full(n)/E_full(n_ref) R_d / albedo_scale",
+                     "albedo_apparent": "albedo_apparent file: pi L / E = R_d F_t(eta, n.v) E_t/E (Ma et al. "
+                                        "2007's diffuse albedo; a renderer's diffuse texture)"},
                  "diffuse_length_median": _channel_medians(maps.diffuse_length(), known),
                  "specular": maps.specular_normals is not None},
         "diffusion": diff_summary, "seed": seed_summary, "notes": notes,
@@ -979,7 +1024,7 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
                        "reference_normal": n_ref},
         "object": {"mask": None if cap.mask_file is None else
                    {"file": _rel(cap.mask_file, cap.folder), "sha256": sha256_file(cap.mask_file)},
-                   "shape": "sphere" if cap.geometry else "unknown",
+                   "shape": "sphere" if cap.geometry else ("relief" if cap.relief is not None else "unknown"),
                    **({"center_mm": cap.geometry.center_mm, "radius_mm": cap.geometry.radius_mm}
                       if cap.geometry else {})},
         "seed": None if cap.seed is None else {"k_mm": cap.seed.k_mm, **cap.seed.provenance},
@@ -996,7 +1041,11 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
         raise ConfigError("--maps/--half", "maps", str(exc), select) from None
     except OSError as exc:
         raise CaptureError(f"{out_dir}: cannot write the maps ({exc})") from exc
-    summary["files"] = {k: str(p) for k, p in files.items()}
+    try:
+        app_path = app_write()
+    except OSError as exc:
+        raise CaptureError(f"{out_dir}: cannot write the maps ({exc})") from exc
+    summary["files"] = {k: str(p) for k, p in {**files, **relief_files, "albedo_apparent": app_path}.items()}
     summary["seconds_maps"] = t_maps
     summary["seconds"] = time.perf_counter() - t0
     return jsonable(summary)
@@ -1073,7 +1122,8 @@ def run_cli(args: Any) -> int:
         raise ConfigError("--maps", "maps", str(exc), getattr(args, "maps", None)) from None
     summary = estimate_capture(cap, out, getattr(args, "format", "exr") or "exr", tile_rows,
                                model=getattr(args, "model", None) or "dipole-jensen", maps=sel,
-                               half=bool(getattr(args, "half", False)), reference=reference)
+                               half=bool(getattr(args, "half", False)), reference=reference,
+                               relief_window_px=getattr(args, "relief_window_px", None))
     if getattr(args, "json", False):
         print(json.dumps(summary, indent=2))
     else:

@@ -493,6 +493,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "others follow (docs/capture-folder.md)")
     q.add_argument("--half", action="store_true",
                    help="write normals and albedos as EXR HALF (float16); the diffusion maps stay float32")
+    q.add_argument("--relief-window-px", type=_int_at_least(16), default=None, metavar="N",
+                   help="without a sphere: window (pixels) of the per-window relief-blur fit (default 64; "
+                        "docs/gradients.md sec. 9)")
     q.add_argument("--reference", action="store_true",
                    help="known sphere only: also correct the sphere summary by Monte Carlo renders of the same "
                         "capture (one render of every pattern per iteration; the per-pixel maps stay "

@@ -1,0 +1,423 @@
+"""Diffusion parameters of surfaces with relief, per window and per region, with intervals and a status.
+
+The diffuse (cross-polarized) normal field of a translucent surface is its true (specular) normal field blurred
+by the subsurface transport: in the linear regime of small slopes the tangential components are filtered by the
+modulation transfer M(k) = R^(k) / R^(0) of the diffusion profile (Ma et al. 2007, sec. 5; Zhu et al., the seed;
+Jensen et al. 2001 for R^(k): :func:`estimation.dipole.hankel_transform`). :func:`estimation.diffusion.fit_relief`
+fits one length per channel to a whole map; this module fits it per window of a stated size and over a region and
+says how much the data constrain it:
+
+- the reduced albedo alpha' comes from the window's median R_d (``albedo``, exit Fresnel divided out), the reduced
+  mean free path l' = 1/sigma_t' from the blur; then sigma_s' = alpha'/l', sigma_a = (1 - alpha')/l',
+  sigma_tr = sqrt(3 sigma_a sigma_t'), l_d = 1/sigma_tr, D = l'/3 (science.md sec. 1);
+- M depends on k only through k l' for a given alpha' (the profile scales with l'), so it is tabulated once per
+  window and channel on a grid of k l' and the cost is evaluated on a grid of l' (log-spaced between
+  ``pixel_mm/4`` and twice the window's extent) and refined by a parabola in log l';
+- the interval is the profile-likelihood one: every l' whose cost exceeds the minimum by less than
+  chi^2_1(confidence) times the residual variance (weighted least squares, the residual's per-pixel variance
+  estimated from the fit; its spatial correlation and the linear model's error are *not* in it), then widened by
+  the model's known relative bias ``model_bias_rel`` (the relief fit on Monte Carlo frames reads l' up to ~25-35 %
+  off: tests/simulators/test_mc_frames_gradients.py, issue 16) and by the albedo's systematic uncertainty;
+- status per window and channel: "unknown" (no usable albedo -- dark or NaN --, too few valid pixels, or a relief
+  whose normal-field variance is not above its noise: a flat region carries no information about a length),
+  "weak" (the profile interval reaches a bound of the l' grid -- only a one-sided bound -- or spans more than a
+  factor ``weak_ratio``), "ok". Unknown windows report NaN values and the whole grid range as their interval.
+
+The noise of a normal field is estimated from its second differences (robust MAD; a smooth relief contributes
+little to them): sigma^2 = (1.4826 MAD)^2 / 6 per component.
+
+References: Ma et al. 2007; Zhu, Peers, Debevec, Ghosh (the seed); Jensen et al. 2001; ``docs/gradients.md``
+sec. 9; ``shared/reference/science.md`` sec. 1, 3-4.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy import stats
+
+from .dipole import hankel_transform, reduced_albedo_from_total_reflectance
+
+__all__ = ["RELIEF_PARAMS", "STATUS_CODES", "ReliefFit", "ReliefRegion", "fit_relief_windows", "summarize_relief",
+           "normal_noise_rad", "parameters_from_l_prime", "normals_from_height"]
+
+Array = NDArray[np.float64]
+RELIEF_PARAMS: tuple[str, ...] = ("l_prime_mm", "l_d_mm", "D_mm", "sigma_s_prime_per_mm", "sigma_a_per_mm",
+                                  "alpha_prime")
+STATUS_CODES = {"unknown": 0, "weak": 1, "ok": 2}
+_N_GRID = 48
+
+
+def normal_noise_rad(normals: ArrayLike, comps: tuple[int, int] | None = None) -> float:
+    """Per-pixel noise standard deviation (radians, small angles) of a normal field (h, w, 3), from the robust
+    MAD of its second differences along both image axes: a smooth relief contributes ~(2 pi px / lambda)^2 of its
+    amplitude to them, white noise sqrt(6) sigma."""
+    n = np.asarray(normals, dtype=np.float64)
+    cs = comps if comps is not None else tuple(np.argsort(np.nanvar(n.reshape(-1, 3), axis=0))[-2:])
+    d2 = []
+    for c in cs:
+        a = n[..., c]
+        if a.shape[0] >= 3:
+            d2.append((a[2:] - 2 * a[1:-1] + a[:-2]).ravel())
+        if a.shape[1] >= 3:
+            d2.append((a[:, 2:] - 2 * a[:, 1:-1] + a[:, :-2]).ravel())
+    v = np.concatenate(d2) if d2 else np.array([np.nan])
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return float("nan")
+    mad = float(np.median(np.abs(v - np.median(v))))
+    return 1.4826 * mad / np.sqrt(6.0)
+
+
+def parameters_from_l_prime(alpha_prime: ArrayLike, l_prime_mm: ArrayLike) -> dict[str, Array]:
+    """sigma_t' = 1/l', sigma_s' = alpha' sigma_t', sigma_a = (1 - alpha') sigma_t', l_d = 1/sqrt(3 sigma_a sigma_t'),
+    D = l'/3 (science.md sec. 1)."""
+    a = np.asarray(alpha_prime, dtype=np.float64)
+    lp = np.asarray(l_prime_mm, dtype=np.float64)
+    st = 1.0 / lp
+    sa = (1.0 - a) * st
+    with np.errstate(divide="ignore", invalid="ignore"):
+        l_d = 1.0 / np.sqrt(3.0 * sa * st)
+    return {"l_prime_mm": lp, "l_d_mm": l_d, "D_mm": lp / 3.0, "sigma_s_prime_per_mm": a * st,
+            "sigma_a_per_mm": sa, "alpha_prime": a + 0.0 * lp}
+
+
+def normals_from_height(height_mm: ArrayLike, pixel_mm: float, rotation: ArrayLike) -> Array:
+    """Rig-frame unit normals (h, w, 3) of a height field ``height_mm`` (h, w) sampled on an orthographic camera's
+    pixel grid (height towards the camera), for the camera ``rotation`` (rows: right, down, forward in the rig
+    frame): in camera coordinates n = (-dh/dx, -dh/dy, -1) / norm (x right, y down, z away from the camera)."""
+    h = np.asarray(height_mm, dtype=np.float64)
+    gy, gx = np.gradient(h, pixel_mm)
+    n_cam = np.stack([-gx, -gy, -np.ones_like(h)], axis=-1)
+    n_cam /= np.linalg.norm(n_cam, axis=-1, keepdims=True)
+    return n_cam @ np.asarray(rotation, dtype=np.float64)          # R^T n per pixel
+
+
+@dataclass(frozen=True)
+class ReliefFit:
+    """Per-window results. Window (i, j) covers rows ``origins_px[i, j, 0] + [0, window_px)`` and columns
+    ``origins_px[i, j, 1] + [0, window_px)``. ``values[name]`` (ny, nx, 3), ``intervals[name]`` (ny, nx, 3, 2) for
+    name in :data:`RELIEF_PARAMS`; ``status`` (ny, nx, 3) of "ok" | "weak" | "unknown"; ``relief_rms_rad`` and
+    ``relief_noise_rad`` (ny, nx): RMS tangential tilt of the true normals in the window and its estimated
+    per-pixel noise; ``diffuse_noise_rad`` (ny, nx, 3); ``l_grid_mm``: the (min, max) searched."""
+
+    window_px: int
+    stride_px: int
+    pixel_mm: float
+    origins_px: NDArray[np.int64]
+    values: dict[str, Array]
+    intervals: dict[str, Array]
+    status: NDArray[np.str_]
+    relief_rms_rad: Array
+    relief_noise_rad: Array
+    diffuse_noise_rad: Array
+    l_grid_mm: tuple[float, float]
+    provenance: dict[str, Any] = field(default_factory=dict)
+
+    def pixel_map(self, name: str, shape: tuple[int, int], which: str = "value") -> NDArray[np.float32]:
+        """A full-resolution (H, W, 3) map: each pixel takes the value (or interval ``"lo"`` / ``"hi"``, or the
+        status code of :data:`STATUS_CODES` for ``name = "status"``) of the last window covering it; NaN where no
+        window does."""
+        out = np.full(shape + (3,), np.nan, np.float32)
+        ny, nx = self.origins_px.shape[:2]
+        for i in range(ny):
+            for j in range(nx):
+                r0, c0 = self.origins_px[i, j]
+                if name == "status":
+                    v = np.array([STATUS_CODES[s] for s in self.status[i, j]], np.float32)
+                elif which == "value":
+                    v = self.values[name][i, j]
+                else:
+                    v = self.intervals[name][i, j, :, 0 if which == "lo" else 1]
+                out[r0:r0 + self.window_px, c0:c0 + self.window_px] = v
+        return out
+
+
+@dataclass(frozen=True)
+class ReliefRegion:
+    """Region summary: ``values[name]`` (3,), ``intervals[name]`` (3, 2), ``status`` per channel, the number of
+    windows used per channel and how the interval was made (``method``)."""
+
+    values: dict[str, Array]
+    intervals: dict[str, Array]
+    status: tuple[str, str, str]
+    n_windows: NDArray[np.int64]
+    method: str
+    confidence: float
+    provenance: dict[str, Any] = field(default_factory=dict)
+
+    def as_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"status": list(self.status), "n_windows": self.n_windows.tolist(),
+                               "method": self.method, "confidence": self.confidence}
+        for k in RELIEF_PARAMS:
+            out[k] = {"value": self.values[k].tolist(), "interval": self.intervals[k].tolist()}
+        out.update(self.provenance)
+        return out
+
+
+# --------------------------------------------------------------------------------------------------------------
+# one window
+# --------------------------------------------------------------------------------------------------------------
+def _mtf_table(alpha_prime: float, eta: float, fdr: str) -> tuple[Array, Array]:
+    """M as a function of x = k l' for sigma_t' = 1 (x log-spaced; M(0) = 1)."""
+    x = np.concatenate([[0.0], np.logspace(-4, 4, 1200)])
+    R = hankel_transform(x, alpha_prime, 1.0 - alpha_prime, eta, fdr=fdr)
+    return x, np.asarray(R / R[0], dtype=np.float64)
+
+
+def _fit_one(Dn: Array, Tn: Array, comps: tuple[int, int], pixel_mm: float, alpha: float, eta: float,
+             l_grid: Array, margin_px: int, fdr: str, confidence: float) -> tuple[float, float, float, bool, bool]:
+    """(l' best, lo, hi, lo_at_bound, hi_at_bound) for one channel of one window (arrays without NaN)."""
+    h, w = Tn.shape[:2]
+    win = np.zeros((h, w))
+    win[margin_px:h - margin_px, margin_px:w - margin_px] = np.outer(np.hanning(h - 2 * margin_px),
+                                                                      np.hanning(w - 2 * margin_px))
+    ph, pw = h // 2, w // 2
+    spectra = [np.fft.fft2(np.pad(Tn[..., c] - Tn[..., c].mean(), ((ph, ph), (pw, pw)), mode="reflect"))
+               for c in comps]
+    H2, W2 = spectra[0].shape
+    ky = 2 * np.pi * np.fft.fftfreq(H2, d=pixel_mm)
+    kx = 2 * np.pi * np.fft.fftfreq(W2, d=pixel_mm)
+    kk = np.sqrt(ky[:, None] ** 2 + kx[None, :] ** 2)
+    data = [Dn[..., c] - Dn[..., c].mean() for c in comps]
+    xs, ms = _mtf_table(alpha, eta, fdr)
+    cost = np.empty(l_grid.size)
+    for i, lp in enumerate(l_grid):
+        M = np.interp(kk * lp, xs, ms)
+        tot = 0.0
+        for spec, dat in zip(spectra, data):
+            pred = np.real(np.fft.ifft2(M * spec))[ph:ph + h, pw:pw + w]
+            tot += float(np.sum((win * (dat - (pred - pred.mean()))) ** 2))
+        cost[i] = tot
+    k = int(np.argmin(cost))
+    ll = np.log(l_grid)
+    best = ll[k]
+    cmin = cost[k]
+    if 0 < k < l_grid.size - 1:      # parabola through the three grid points around the minimum
+        y0, y1, y2 = cost[k - 1], cost[k], cost[k + 1]
+        den = y0 - 2 * y1 + y2
+        if den > 0:
+            off = 0.5 * (y0 - y2) / den
+            best = ll[k] + off * (ll[1] - ll[0])
+            cmin = y1 - 0.25 * (y0 - y2) * off
+    W2s, W4s = float(np.sum(win ** 2)), float(np.sum(win ** 4))
+    s2 = max(cmin, 0.0) / (len(comps) * W2s)                   # residual variance per pixel and component
+    thr = cmin + stats.chi2.ppf(confidence, 1) * s2 * W4s / W2s * len(comps)
+    inside = np.nonzero(cost <= max(thr, cost[k]))[0]
+    i0, i1 = int(inside.min()), int(inside.max())
+    lo = l_grid[max(i0 - 1, 0)] if i0 > 0 else l_grid[0]         # the next grid point out: conservative
+    hi = l_grid[min(i1 + 1, l_grid.size - 1)]
+    return float(np.exp(best)), float(lo), float(hi), i0 == 0, i1 == l_grid.size - 1
+
+
+def _window_origins(n: int, window: int, stride: int) -> list[int]:
+    if n < window:
+        return []
+    o = list(range(0, n - window + 1, stride))
+    if o[-1] != n - window:
+        o.append(n - window)
+    return o
+
+
+def _derived_interval(alpha: float, alpha_lo: float, alpha_hi: float, l_lo: float, l_hi: float
+                      ) -> dict[str, tuple[float, float]]:
+    corners = [parameters_from_l_prime(a, lp) for a in (alpha_lo, alpha_hi) for lp in (l_lo, l_hi)]
+    out = {}
+    for k in RELIEF_PARAMS:
+        v = np.array([float(c[k]) for c in corners])
+        out[k] = (float(np.nanmin(v)), float(np.nanmax(v))) if np.isfinite(v).any() else (0.0, float("inf"))
+    return out
+
+
+def fit_relief_windows(diffuse_normals: ArrayLike, true_normals: ArrayLike, albedo: ArrayLike, pixel_mm: float,
+                       eta: float, *, window_px: int = 64, stride_px: int | None = None,
+                       valid: ArrayLike | None = None, min_valid_fraction: float = 0.9,
+                       margin_px: int | None = None, confidence: float = 0.95, model_bias_rel: float = 0.3,
+                       albedo_rel_uncertainty: float = 0.1, weak_ratio: float = 4.0, min_relief_snr: float = 2.0,
+                       min_relief_rad: float = 2e-3, fdr: str = "fit") -> ReliefFit:
+    """Fit l' per window and channel from the blur of ``diffuse_normals`` (H, W, 3 channels, 3 xyz) against
+    ``true_normals`` (H, W, 3) (known geometry, or the specular normals of the same capture); ``albedo``
+    (H, W, 3) is R_d (exit Fresnel divided out, as :func:`estimation.gradients.compute_maps` reports it);
+    ``pixel_mm`` the pixel footprint on the surface; ``valid`` (H, W) or (H, W, 3) usable pixels (NaN pixels are
+    never used; a window needs ``min_valid_fraction`` of them, the rest are filled with the window mean).
+
+    Windows of ``window_px`` (>= 16) every ``stride_px`` (default: ``window_px``, non-overlapping) with a Hann
+    weight inside ``margin_px`` (default window/4) of the edge: a diffuse normal depends on the relief within a few
+    l_d, which the window must contain (margin >~ 2 l_d). See the module docstring for the interval and status.
+    """
+    Dn = np.asarray(diffuse_normals)          # kept in their dtype (float32 maps): each window is cast to float64
+    Tn = np.asarray(true_normals)
+    alb = np.asarray(albedo)
+    H, W = Tn.shape[:2]
+    if Tn.shape != (H, W, 3) or Dn.shape != (H, W, 3, 3) or alb.shape != (H, W, 3):
+        raise ValueError("need diffuse_normals (H, W, 3, 3), true_normals (H, W, 3) and albedo (H, W, 3)")
+    if int(window_px) < 16:
+        raise ValueError(f"window_px must be >= 16, got {window_px}")
+    if not pixel_mm > 0 or not np.isfinite(pixel_mm):
+        raise ValueError(f"pixel_mm must be a finite number > 0, got {pixel_mm}")
+    win_px = int(window_px)
+    stride = win_px if stride_px is None else int(stride_px)
+    if stride < 1:
+        raise ValueError(f"stride_px must be >= 1, got {stride_px}")
+    margin = win_px // 4 if margin_px is None else int(margin_px)
+    if not 0 <= 2 * margin < win_px - 2:
+        raise ValueError("margin_px leaves no pixels")
+    v = np.ones((H, W, 3), bool) if valid is None else np.asarray(valid, dtype=bool)
+    if v.ndim == 2:
+        v = np.repeat(v[..., None], 3, axis=-1)
+    finite_t = np.isfinite(Tn).all(-1)
+    l_grid = np.exp(np.linspace(np.log(pixel_mm / 4.0), np.log(2.0 * win_px * pixel_mm), _N_GRID))
+    rows, cols = _window_origins(H, win_px, stride), _window_origins(W, win_px, stride)
+    ny, nx = len(rows), len(cols)
+    if ny == 0 or nx == 0:
+        raise ValueError(f"window_px {win_px} is larger than the map ({W} x {H} px)")
+    vals = {k: np.full((ny, nx, 3), np.nan) for k in RELIEF_PARAMS}
+    ints = {k: np.full((ny, nx, 3, 2), np.nan) for k in RELIEF_PARAMS}
+    status = np.full((ny, nx, 3), "unknown", dtype="<U7")
+    rms = np.full((ny, nx), np.nan)
+    noise = np.full((ny, nx), np.nan)
+    dnoise = np.full((ny, nx, 3), np.nan)
+    full_lo, full_hi = l_grid[0], l_grid[-1]
+    for i, r0 in enumerate(rows):
+        for j, c0 in enumerate(cols):
+            sl = (slice(r0, r0 + win_px), slice(c0, c0 + win_px))
+            t = Tn[sl].astype(np.float64)
+            ok_t = finite_t[sl]
+            if ok_t.mean() < min_valid_fraction:
+                continue
+            t = np.where(ok_t[..., None], t, np.nanmean(t[ok_t], axis=0))
+            comps = tuple(int(c) for c in np.argsort(t.reshape(-1, 3).var(axis=0))[-2:])
+            sig_n = normal_noise_rad(t, comps)
+            tot_var = sum(float(np.var(t[..., c])) for c in comps)
+            rel_rms = float(np.sqrt(max(tot_var - 2 * sig_n ** 2, 0.0)))
+            rms[i, j], noise[i, j] = rel_rms, sig_n
+            relief_ok = rel_rms >= max(min_relief_snr * np.sqrt(2.0) * sig_n, min_relief_rad)
+            for c in range(3):
+                d = Dn[sl][..., c, :].astype(np.float64)
+                a_w = alb[sl][..., c].astype(np.float64)
+                ok = ok_t & v[sl][..., c] & np.isfinite(d).all(-1) & np.isfinite(a_w)
+                # unknown defaults: the whole searched range as interval
+                a_med = float(np.median(a_w[ok])) if ok.any() else float("nan")
+                if ok.mean() < min_valid_fraction or not (0 < a_med < 1):
+                    _put_unknown(ints, i, j, c, full_lo, full_hi, a_med, eta, fdr)
+                    continue
+                dn = d / np.linalg.norm(d, axis=-1, keepdims=True)
+                dn = np.where(ok[..., None], dn, np.nanmean(dn[ok], axis=0))
+                dnoise[i, j, c] = normal_noise_rad(dn, comps)
+                alpha = float(reduced_albedo_from_total_reflectance(a_med, eta, fdr=fdr))
+                if not relief_ok:
+                    _put_unknown(ints, i, j, c, full_lo, full_hi, a_med, eta, fdr)
+                    continue
+                best, lo, hi, lo_b, hi_b = _fit_one(dn, t, comps, pixel_mm, alpha, eta, l_grid, margin, fdr,
+                                                    confidence)
+                lo_w, hi_w = lo / (1.0 + model_bias_rel), hi * (1.0 + model_bias_rel)
+                a_lo = float(reduced_albedo_from_total_reflectance(a_med / (1 + albedo_rel_uncertainty), eta,
+                                                                   fdr=fdr))
+                a_hi = float(reduced_albedo_from_total_reflectance(min(a_med * (1 + albedo_rel_uncertainty),
+                                                                       0.999), eta, fdr=fdr))
+                point = parameters_from_l_prime(alpha, best)
+                iv = _derived_interval(alpha, a_lo, a_hi, lo_w, hi_w)
+                for k in RELIEF_PARAMS:
+                    vals[k][i, j, c] = float(point[k])
+                    ints[k][i, j, c] = iv[k]
+                weak = lo_b or hi_b or hi / lo > weak_ratio
+                status[i, j, c] = "weak" if weak else "ok"
+    origins = np.array([[(r, c) for c in cols] for r in rows], dtype=np.int64).reshape(ny, nx, 2)
+    prov = {"window_px": win_px, "stride_px": stride, "margin_px": margin, "pixel_mm": float(pixel_mm),
+            "confidence": confidence, "model_bias_rel": model_bias_rel,
+            "albedo_rel_uncertainty": albedo_rel_uncertainty, "weak_ratio": weak_ratio,
+            "min_relief_snr": min_relief_snr, "min_relief_rad": min_relief_rad, "eta": eta, "fdr": fdr,
+            "method": "relief blur, profile likelihood per window (estimation.relief)"}
+    return ReliefFit(win_px, stride, float(pixel_mm), origins, vals, ints, status, rms, noise, dnoise,
+                     (float(full_lo), float(full_hi)), prov)
+
+
+def _put_unknown(ints: dict[str, Array], i: int, j: int, c: int, l_lo: float, l_hi: float, a_med: float,
+                 eta: float, fdr: str) -> None:
+    """An unknown window-channel: NaN value, interval = the whole searched l' range (albedo 0-1 if unusable)."""
+    if 0 < a_med < 1:
+        al = float(reduced_albedo_from_total_reflectance(a_med, eta, fdr=fdr))
+        iv = _derived_interval(al, al, al, l_lo, l_hi)
+    else:
+        iv = {k: (0.0, float("inf")) for k in RELIEF_PARAMS}
+    for k in RELIEF_PARAMS:
+        ints[k][i, j, c] = iv[k]
+
+
+# --------------------------------------------------------------------------------------------------------------
+# region summary
+# --------------------------------------------------------------------------------------------------------------
+def summarize_relief(fit: ReliefFit, region: ArrayLike | None = None, *, min_in_region: float = 0.5,
+                     n_boot: int = 400, seed: int = 0) -> ReliefRegion:
+    """Per-channel summary over the windows of ``fit`` that lie mostly (``min_in_region``) inside ``region``
+    (H, W) (default: all windows).
+
+    Value: the median of log l' over the "ok" windows (over the "weak" ones when none is ok); derived parameters
+    from it and the median alpha'. Interval (``method``): with >= 5 ok windows the bootstrap percentile interval of
+    that median (``n_boot`` resamples, seeded) widened by the fit's ``model_bias_rel`` -- and never narrower than
+    the narrowest single-window interval's relative width; with 1-4 ok windows the hull of their intervals.
+    Status: "ok" when ok windows are at least half of the usable ones, "weak" when only weak windows exist or ok
+    windows are a minority, "unknown" without any (values NaN, interval the whole searched range).
+    """
+    ny, nx = fit.origins_px.shape[:2]
+    wmask = np.ones((ny, nx), bool)
+    if region is not None:
+        reg = np.asarray(region, dtype=bool)
+        for i in range(ny):
+            for j in range(nx):
+                r0, c0 = fit.origins_px[i, j]
+                wmask[i, j] = reg[r0:r0 + fit.window_px, c0:c0 + fit.window_px].mean() >= min_in_region
+    bias = float(fit.provenance.get("model_bias_rel", 0.3))
+    conf = float(fit.provenance.get("confidence", 0.95))
+    vals = {k: np.full(3, np.nan) for k in RELIEF_PARAMS}
+    ints = {k: np.full((3, 2), np.nan) for k in RELIEF_PARAMS}
+    status: list[str] = []
+    nwin = np.zeros(3, np.int64)
+    methods = []
+    rng = np.random.default_rng(seed)
+    for c in range(3):
+        st = fit.status[..., c][wmask]
+        lp = fit.values["l_prime_mm"][..., c][wmask]
+        al = fit.values["alpha_prime"][..., c][wmask]
+        okw, weakw = st == "ok", st == "weak"
+        use = okw if okw.any() else weakw
+        nwin[c] = int(use.sum())
+        if not use.any():
+            status.append("unknown")
+            methods.append("none")
+            unk = fit.intervals["l_prime_mm"][..., c, :][wmask]
+            for k in RELIEF_PARAMS:
+                ints[k][c] = (0.0, float("inf"))
+            if unk.size:
+                ints["l_prime_mm"][c] = (float(np.nanmin(unk[:, 0])), float(np.nanmax(unk[:, 1])))
+                ints["D_mm"][c] = ints["l_prime_mm"][c] / 3.0
+            continue
+        logl = np.log(lp[use])
+        a_med = float(np.median(al[use]))
+        best = float(np.exp(np.median(logl)))
+        point = parameters_from_l_prime(a_med, best)
+        wint = {k: fit.intervals[k][..., c, :][wmask][use] for k in RELIEF_PARAMS}
+        if use.sum() >= 5 and okw.any():
+            boots = np.median(rng.choice(logl, size=(n_boot, logl.size), replace=True), axis=1)
+            q = np.quantile(boots, [(1 - conf) / 2, (1 + conf) / 2])
+            rel_single = float(np.min(wint["l_prime_mm"][:, 1] / wint["l_prime_mm"][:, 0]))
+            lo, hi = float(np.exp(q[0])) / (1 + bias), float(np.exp(q[1])) * (1 + bias)
+            if hi / lo < rel_single:       # never narrower than the best single window's own interval
+                f = np.sqrt(rel_single / (hi / lo))
+                lo, hi = lo / f, hi * f
+            a_iv = (float(np.min(al[use])), float(np.max(al[use])))
+            iv = _derived_interval(a_med, a_iv[0], a_iv[1], lo, hi)
+            methods.append("bootstrap over windows, widened by the model bias")
+        else:
+            iv = {k: (float(np.nanmin(wint[k][:, 0])), float(np.nanmax(wint[k][:, 1]))) for k in RELIEF_PARAMS}
+            methods.append("hull of the window intervals")
+        for k in RELIEF_PARAMS:
+            vals[k][c] = float(point[k])
+            ints[k][c] = iv[k]
+        n_usable = int((okw | weakw).sum())
+        status.append("ok" if okw.any() and okw.sum() * 2 >= n_usable else "weak")
+    prov = {"windows_in_region": int(wmask.sum()), "window_px": fit.window_px, "model_bias_rel": bias}
+    return ReliefRegion(vals, ints, (status[0], status[1], status[2]), nwin, "; ".join(sorted(set(methods))),
+                        conf, prov)
