@@ -48,7 +48,6 @@ import argparse
 import contextlib
 import io
 import json
-import math
 import os
 import sys
 import tempfile
@@ -61,6 +60,8 @@ from typing import Any, Iterator
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from drivers.atomic import atomic_write_bytes  # noqa: E402
+from rig.provenance import json_default  # noqa: E402
 from zoo.frames import build_scene, default_root  # noqa: E402
 from zoo.rules import REFERENCE_MODEL, acceptance, evaluate, worst_sigma_s  # noqa: E402
 from zoo.scenes import SceneSpec, draw_zoo, quick_subset, quick_variant  # noqa: E402
@@ -308,18 +309,10 @@ def main(argv: list[str] | None = None) -> int:
           f"{sum(s['meta']['render_seconds'] for s in scenes if not s['meta'].get('cached')):.0f})")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"quick": args.quick, "reference_spp": ref_spp, "reference_iterations": ref_it,
-                                         "models": models, "scenes": scenes, "acceptance": verdict,
-                                         "seconds": total}, indent=1, default=_json_default))
+        doc = {"quick": args.quick, "reference_spp": ref_spp, "reference_iterations": ref_it, "models": models,
+               "scenes": scenes, "acceptance": verdict, "seconds": total}
+        atomic_write_bytes(args.json, json.dumps(doc, indent=1, default=json_default).encode())
     return 0
-
-
-def _json_default(x: Any) -> Any:
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    if hasattr(x, "tolist"):
-        return x.tolist()
-    return str(x)
 
 
 if __name__ == "__main__":

@@ -38,8 +38,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     from .demo import format_table, run_demo
     result = run_demo(config_path=args.config, sessions_dir=args.sessions, name=args.name, log=_say(args))
     if args.json:
-        from .session import _json_default
-        print(json.dumps(result, indent=2, default=_json_default))
+        from .provenance import json_default
+        print(json.dumps(result, indent=2, default=json_default))
     else:
         print(format_table(result))
     return 0
@@ -132,8 +132,8 @@ def _cmd_plan(args: argparse.Namespace) -> int:
 
 
 def _json_out(obj) -> None:
-    from .session import _json_default
-    print(json.dumps(obj, indent=2, default=_json_default))
+    from .provenance import json_default
+    print(json.dumps(obj, indent=2, default=json_default))
 
 
 def _say(args: argparse.Namespace):
@@ -292,10 +292,10 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
         from .capture_folder import run_cli as run_folder  # a capture folder (docs/capture-folder.md)
         return run_folder(args)
     from .estimate import estimate_session
-    from .session import _json_default
+    from .provenance import json_default
     out = estimate_session(args.session, calibration=args.calibration, log=_say(args))
     if args.json:
-        print(json.dumps(out, indent=2, default=_json_default))
+        print(json.dumps(out, indent=2, default=json_default))
     else:
         from .estimate import format_rows
         print(format_rows(out))

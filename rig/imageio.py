@@ -18,13 +18,13 @@ Writers are atomic (temporary file in the same folder, fsync, rename), so a cras
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from drivers.atomic import atomic_write
 from drivers.errors import RigError
 
 __all__ = ["ImageFileError", "IMAGE_SUFFIXES", "RAW_SUFFIXES", "read_image", "write_exr", "write_float_tiff",
@@ -150,24 +150,6 @@ def _read_any(path: str | os.PathLike[str]) -> tuple[NDArray[np.float32], dict[s
 
 
 # ---------------------------------------------------------------------------------------------- writers
-def atomic_write(path: str | os.PathLike[str], write: Callable[[Path], None]) -> Path:
-    """Call ``write(tmp_path)`` on a temporary file next to ``path``, fsync it, rename it onto ``path``."""
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{p.stem}.", suffix=p.suffix, dir=p.parent)
-    os.close(fd)
-    tmp_p = Path(tmp)
-    try:
-        write(tmp_p)
-        with open(tmp_p, "rb+") as fh:
-            os.fsync(fh.fileno())
-        os.replace(tmp_p, p)
-    except BaseException:
-        tmp_p.unlink(missing_ok=True)
-        raise
-    return p
-
-
 def _as_image(a: ArrayLike, name: str) -> NDArray[np.float32]:
     arr = np.asarray(a, dtype=np.float32)
     if arr.ndim == 3 and arr.shape[2] == 1:

@@ -36,11 +36,12 @@ from typing import Any, Mapping
 import numpy as np
 from numpy.typing import NDArray
 
+from drivers.atomic import atomic_write
 from drivers.errors import RigError
 from estimation.diffusion import DiffusionMaps, SeedEstimate
 from estimation.gradients import DerivedMap, GradientMaps
 
-from .imageio import atomic_write, write_exr, write_float_tiff, write_png8
+from .imageio import write_exr, write_float_tiff, write_png8
 from .provenance import jsonable, sha256_file
 
 __all__ = ["MAPS_FORMAT", "MAPS_FORMAT_VERSION", "SIDECAR", "PREVIEW", "MASKS", "MASK_BITS", "MAP_SPECS",

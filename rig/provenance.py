@@ -3,13 +3,14 @@ from __future__ import annotations
 
 import hashlib
 import math
+import os
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-__all__ = ["sha256_file", "jsonable"]
+__all__ = ["sha256_file", "jsonable", "json_default"]
 
 
 def sha256_file(path: str | Path) -> str:
@@ -42,3 +43,19 @@ def jsonable(o: Any) -> Any:
     if o is None or isinstance(o, (str, int)):
         return o
     return str(o)
+
+
+def json_default(o: Any) -> Any:
+    """The ``json.dumps(default=...)`` hook of every JSON writer that keeps numbers as they are (sessions,
+    calibration files, the CLI's --json): numpy arrays and scalars as lists and numbers, paths as strings;
+    anything else is an error. Non-finite floats stay JSON's NaN / Infinity extension there (Python's json does
+    so for its own floats); :func:`jsonable` is the strict form (null) for maps, scene results and reports."""
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.bool_):
+        return bool(o)
+    if isinstance(o, os.PathLike):
+        return os.fspath(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")

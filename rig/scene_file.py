@@ -28,11 +28,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from drivers.atomic import atomic_write
 from drivers.errors import ConfigError
 from estimation.camera import PinholeCamera, look_at_rotation
 
 from .config import _REQUIRED, _Reader
-from .imageio import ImageFileError, RAW_SUFFIXES, atomic_write, read_image
+from .imageio import ImageFileError, RAW_SUFFIXES, read_image
 from .provenance import jsonable, sha256_file
 from .session import software_version
 

@@ -26,7 +26,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator
 
+from drivers.atomic import atomic_write_bytes as _atomic_write_bytes
+from drivers.atomic import fsync_dir
 from drivers.errors import RigError
+
+from .provenance import json_default
 
 FORMAT_VERSION = 1
 STOP_STATUSES = ("complete", "paused", "aborted")
@@ -61,32 +65,12 @@ def validate_session_name(name: str) -> str:
     return name
 
 
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
-
-
 def atomic_write_bytes(path: Path, data: bytes, *, overwrite: bool = False) -> None:
-    """Write ``data`` to ``path`` via a temporary file, fsync and rename; refuse to clobber by default."""
-    path = Path(path)
-    if not overwrite and path.exists():
-        raise SessionError(f"{path}: refusing to overwrite an existing file")
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    if overwrite:
-        os.replace(tmp, path)
-    else:
-        try:
-            os.link(tmp, path)   # fails if path appeared meanwhile: no silent clobbering
-        finally:
-            os.unlink(tmp)
-    _fsync_dir(path.parent)
+    """drivers.atomic.atomic_write_bytes, refusing to clobber by default (a session's files are written once)."""
+    try:
+        _atomic_write_bytes(path, data, overwrite=overwrite)
+    except FileExistsError as exc:
+        raise SessionError(str(exc)) from None
 
 
 def atomic_copy(src: Path, dst: Path) -> str:
@@ -142,7 +126,7 @@ class Session:
         if calibration is not None:
             manifest["calibration"] = calibration
         atomic_write_bytes(root / "manifest.json",
-                           json.dumps(manifest, indent=2, default=_json_default).encode())
+                           json.dumps(manifest, indent=2, default=json_default).encode())
         s = cls(root)
         s.append_event({"type": "start"})
         return s
@@ -180,7 +164,7 @@ class Session:
     def write_estimate(self, name: str, payload: dict[str, Any]) -> Path:
         validate_session_name(name)
         path = self.root / "estimates" / f"{name}.json"
-        atomic_write_bytes(path, json.dumps(payload, indent=2, default=_json_default).encode(),
+        atomic_write_bytes(path, json.dumps(payload, indent=2, default=json_default).encode(),
                            overwrite=True)
         return path
 
@@ -223,8 +207,8 @@ class Session:
                 n += 1
             os.rename(p, dst)
             moved.append(f"{p.name} -> {dst.relative_to(self.root)}")
-        _fsync_dir(orphans)
-        _fsync_dir(frames_dir)
+        fsync_dir(orphans)
+        fsync_dir(frames_dir)
         self.append_event({"type": "recovered", "moved": moved})
         return moved
 
@@ -314,14 +298,3 @@ class Session:
         for p in sorted((self.root / "estimates").glob("*.json")):
             out[p.stem] = json.loads(p.read_text())
         return out
-
-
-def _json_default(o: Any) -> Any:
-    import numpy as np
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if isinstance(o, np.bool_):
-        return bool(o)
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")

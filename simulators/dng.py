@@ -9,13 +9,14 @@ atomically (temporary file, fsync, rename), so a folder watcher never sees half 
 from __future__ import annotations
 
 import os
-import tempfile
 from fractions import Fraction
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 import numpy.typing as npt
+
+from drivers.atomic import atomic_write
 
 # XYZ (D65) -> linear sRGB: the simulated sensor's native RGB is linear sRGB.
 XYZ_TO_SRGB = ((3.2404542, -1.5371385, -0.4985314),
@@ -152,29 +153,10 @@ def write_cfa_dng(path: str | os.PathLike[str], mosaic: npt.ArrayLike, *, exposu
         (TAG_AS_SHOT_NEUTRAL, "2I", 3, neutral, True),
     ]
 
-    target = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    os.close(fd)
-    try:
+    def write(tmp: Path) -> None:
         with open(tmp, "wb") as fh:
             tifffile.imwrite(fh, mosaic, photometric="cfa", subfiletype=0, metadata=None, software="sssrig",
                              extratags=tags)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.chmod(tmp, 0o644)             # mkstemp makes 0600; a frame is an ordinary data file
-        os.replace(tmp, target)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
-    try:
-        dir_fd = os.open(target.parent, os.O_RDONLY)
-        try:
-            os.fsync(dir_fd)
-        finally:
-            os.close(dir_fd)
-    except OSError:
-        pass
+
+    atomic_write(path, write)
     return mosaic

@@ -40,6 +40,7 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any, Iterator
 
+from ..atomic import atomic_write
 from ..contracts import DeviceIdentity, RawFrame
 from ..errors import ConnectionLost, DeviceBusy, DeviceError, DeviceTimeout
 from .raw import load_linear
@@ -348,13 +349,7 @@ class GphotoCamera:
         what = f"download {posixpath.join(folder, file_name)}"
         camera_file = self._call(what, self._camera.file_get, folder, file_name, self._gp.GP_FILE_TYPE_NORMAL)
         target = self._target(file_name)
-        tmp = target.with_name(f".{target.name}.part")
-        try:
-            self._call(what, camera_file.save, os.fspath(tmp))
-            os.replace(tmp, target)
-        finally:
-            if tmp.exists():
-                tmp.unlink()
+        atomic_write(target, lambda tmp: self._call(what, camera_file.save, os.fspath(tmp)))
         if self.delete_after_download:
             self._call(f"delete {file_name} from the camera", self._camera.file_delete, folder, file_name)
         rgb, meta = load_linear(target)

@@ -77,7 +77,7 @@ def _fmt(v: Any) -> str:
 
 def run_cli(args: argparse.Namespace) -> int:
     from ..config import load_config
-    from ..session import _json_default
+    from ..provenance import json_default
     from .run import ORDER, run_step
     from .settings import load_settings
 
@@ -107,5 +107,5 @@ def run_cli(args: argparse.Namespace) -> int:
                 print(f"  vs simulator truth: {_fmt(rep.truth)}")
     if args.json:
         print(json.dumps({"file": str(args.out), "steps": [r.to_dict() for r in reports]}, indent=2,
-                         default=_json_default))
+                         default=json_default))
     return 0

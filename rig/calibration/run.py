@@ -143,9 +143,10 @@ def run_step(step: str, config: RigConfig, *, out: str | Path, sessions_dir: str
         # material and the sensor gain, so the manifest's ``truth`` of the world does not hold them)
         import json
 
-        from ..session import _json_default, atomic_write_bytes
+        from ..provenance import json_default
+        from ..session import atomic_write_bytes
         atomic_write_bytes(cap.session.root / "truth_comparison.json",
-                           (json.dumps(report.truth, indent=2, default=_json_default) + "\n").encode())
+                           (json.dumps(report.truth, indent=2, default=json_default) + "\n").encode())
     return report
 
 

@@ -31,7 +31,10 @@ from typing import Any, Callable, Mapping
 import numpy as np
 import numpy.typing as npt
 
+from drivers.atomic import atomic_write_bytes
 from drivers.errors import RigError
+
+from ..provenance import json_default
 
 FORMAT = "sssrig-calibration"
 SCHEMA_VERSION = 1
@@ -202,21 +205,7 @@ def new_document(rig_name: str) -> dict[str, Any]:
             "updated": None, "steps": {}}
 
 
-def _json_default(o: Any) -> Any:
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if isinstance(o, np.bool_):
-        return bool(o)
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
-
-
 def _atomic_write(path: Path, text: str) -> None:
-    from ..session import atomic_write_bytes
-
     atomic_write_bytes(path, text.encode(), overwrite=True)
 
 
@@ -251,7 +240,7 @@ def write_section(path: str | os.PathLike[str], name: str, *, result: Mapping[st
                                doc.get("rig"))
     rev = int(doc["revision"]) + 1
     section = json.loads(json.dumps({"result": dict(result), "residuals": dict(residuals),
-                                     "provenance": dict(provenance), "revision": rev}, default=_json_default))
+                                     "provenance": dict(provenance), "revision": rev}, default=json_default))
     _validate_section(str(p), name, section)
     if p.exists():
         hist = p.parent / f"{p.name}.history"
@@ -261,7 +250,7 @@ def write_section(path: str | os.PathLike[str], name: str, *, result: Mapping[st
     doc["revision"] = rev
     doc["updated"] = now_iso()
     p.parent.mkdir(parents=True, exist_ok=True)
-    _atomic_write(p, json.dumps(doc, indent=2, default=_json_default) + "\n")
+    _atomic_write(p, json.dumps(doc, indent=2, default=json_default) + "\n")
     return doc
 
 

@@ -46,6 +46,7 @@ from typing import Any
 
 import numpy as np
 
+from drivers.atomic import atomic_write
 from estimation.mc_table import TABLE_FORMAT, McProfileTable, decay_constant
 from scipy.interpolate import UnivariateSpline
 
@@ -480,10 +481,11 @@ def main(argv: list[str] | None = None) -> int:
             args.save_raw.parent.mkdir(parents=True, exist_ok=True)
             np.savez_compressed(args.save_raw, **raw)
     arrays = build_table(raw, grid, log=say)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = args.out.with_name(args.out.name + ".tmp.npz")
-    np.savez_compressed(tmp, **arrays)
-    os.replace(tmp, args.out)
+    def write(tmp: Path) -> None:
+        with open(tmp, "wb") as fh:      # a file object: np.savez would append ".npz" to a name
+            np.savez_compressed(fh, **arrays)
+
+    atomic_write(args.out, write)
     meta = json.loads(str(arrays["metadata_json"]))
     print(f"wrote {args.out} ({args.out.stat().st_size / 1024:.0f} KiB); Monte Carlo wall time "
           f"{meta['generation_wall_seconds']} s; leave-one-out: {json.dumps(meta['leave_one_out'])}", flush=True)
