@@ -30,8 +30,8 @@ Not captured (documented bias of the point-light estimator with eta != 1): light
 vertex only after a specular reflection inside the medium, bounded by F_r exp(-sigma_t * chord); zero for the
 half-space, small for a sphere or box many mean free paths across, but not zero near edges: light refracted in
 within ~a mean free path of an edge can meet the next face beyond the critical angle (total reflection). Measured
-on the L-block at eta 1.3 (37 deg incidence, mean free path 0.4 mm): the image ~2.5 % darker than plain path
-tracing of a map pixel (docs/monte-carlo.md). Non-convex meshes add light that crosses
+on the L-block at eta 1.3 (37 deg incidence, mean free path 0.4 mm): 1.9 +- 0.6 % darker than plain path tracing
+of a map pixel, none at 0.08 mm (docs/monte-carlo.md; consistent with this blind spot, not proven the only cause). Non-convex meshes add light that crosses
 the boundary more than once before it first scatters (refracted in, through a part of the object unscattered, out
 and in again: a chain of specular vertices with no closed form), bounded by F_t^3 exp(-sigma_t * chord) for the
 chord through the intervening part (for the L-block's 8 mm wall, exp(-8 sigma_t): < 1e-7 at sigma_t >= 2 / mm; the
