@@ -32,8 +32,13 @@ Printed per scene and model: estimates, relative errors, 95 % intervals, whether
 sigma_a error beside the cumulative seconds. Then per model the acceptance lines of issue 15 (PASS/FAIL with
 counts; rules.py), a summary table and, per failure class, the pairs within 10 % and the median errors.
 
-Run: ``python benchmarks/scene_zoo.py [--quick] [--json FILE] [--reference-spp N] [--reference-iterations K]
-[--scenes 0,3,7] [--models mc-table,...]``. Cost, measured on 2 shared cores (NUMBA_NUM_THREADS=2): the full zoo
+Non-convex family (issue 17 part 5, ``--family nonconvex`` or ``all``; benchmarks/zoo/nonconvex.py): scenes 24-27,
+an L-block and a U-channel under a point light that casts the object's own shadow on an observed face and under a
+smooth sky, eta 1.3-1.5, camera noise; designed, not drawn, and outside ``--quick`` (the 24 drawn scenes, their
+seeds and the CI subset are unchanged). ``--shadows both`` prints every fit with shadows off beside it.
+
+Run: ``python benchmarks/scene_zoo.py [--quick] [--family zoo|nonconvex|all] [--json FILE] [--reference-spp N]
+[--reference-iterations K] [--scenes 0,3,7] [--models mc-table,...] [--shadows auto|on|off|both]``. Cost, measured on 2 shared cores (NUMBA_NUM_THREADS=2): the full zoo
 (64 x 64 px frames; references 128 spp, at most 6 renders) ~11 min, of which the frames ~1.5 min (first run only)
 and mc-table+reference ~6 min; ``--quick`` (6 scenes covering unlit face, eta = 1, sun, fireflies, zeros, camera
 noise; 48 x 48 px, 64-spp frames, 32-spp references, at most 4 renders) ~50-75 s. Each scene also prints a *file
@@ -64,11 +69,13 @@ from drivers.atomic import atomic_write_bytes  # noqa: E402
 from rig.provenance import json_default  # noqa: E402
 from zoo.frames import build_scene, default_root  # noqa: E402
 from zoo.rules import REFERENCE_MODEL, acceptance, evaluate, worst_sigma_s  # noqa: E402
+from zoo.nonconvex import draw_nonconvex  # noqa: E402
 from zoo.scenes import SceneSpec, draw_zoo, quick_subset, quick_variant  # noqa: E402
 
 MODELS = ("dipole-jensen", "dipole-better", "mc-table", REFERENCE_MODEL)
 CLASS_ORDER = ("unlit", "point1", "point2", "sun", "sky", "eta1", "eta1.3", "eta1.5", "mc", "zeros", "camera",
-               "noise-section", "no-noise-section", "graze", "cube", "pyramid", "sphere", "box", "rgb")
+               "noise-section", "no-noise-section", "graze", "cube", "pyramid", "sphere", "box", "lblock", "ushape",
+               "rgb")
 
 
 @contextlib.contextmanager
@@ -257,6 +264,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--reference-iterations", type=int, help="at most this many reference renders (default 6, "
                     "--quick 4)")
     ap.add_argument("--scenes", help="comma-separated scene indices (default: all of the zoo or the subset)")
+    ap.add_argument("--family", choices=["zoo", "nonconvex", "all"], default="zoo",
+                    help="zoo: the 24 drawn convex scenes (default; --quick takes its subset of them); nonconvex: "
+                         "issue 17's self-shadowing L-blocks and U-channels under a point light and a sky "
+                         "(indices 24-27, benchmarks/zoo/nonconvex.py); all: both")
     ap.add_argument("--models", help="comma-separated models (default: all four)")
     ap.add_argument("--root", type=Path, help="scene folders (default benchmarks/out/zoo or $SSSRIG_ZOO_DIR)")
     ap.add_argument("--shadows", choices=["auto", "on", "off", "both"], default="auto",
@@ -266,9 +277,11 @@ def main(argv: list[str] | None = None) -> int:
     ref_spp = args.reference_spp or (32 if args.quick else 128)
     ref_it = args.reference_iterations or (4 if args.quick else 6)
     models = tuple(args.models.split(",")) if args.models else MODELS
-    specs = draw_zoo()
+    specs = draw_zoo() if args.family != "nonconvex" else []
     if args.quick:
-        specs = [quick_variant(s) for s in quick_subset(specs)]
+        specs = [quick_variant(s) for s in quick_subset(specs)] if specs else []
+    if args.family != "zoo":
+        specs += draw_nonconvex()
     if args.scenes:
         keep = {int(x) for x in args.scenes.split(",")}
         specs = [s for s in specs if s.index in keep]

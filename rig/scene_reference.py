@@ -115,6 +115,7 @@ def check_reference_scene(scene: Any) -> Any:
     """Refuse what the Monte Carlo reference cannot render (:class:`rig.scene_file.SceneFileError` naming the
     key); return the :class:`simulators.mc.Mesh` of the scene's surface (world frame)."""
     from simulators.mc import Mesh
+    from simulators.mc.shapes import MAX_CONNECTION_PLANES, refracted_point_lights_supported
 
     from .scene_file import SceneFileError
 
@@ -126,13 +127,15 @@ def check_reference_scene(scene: Any) -> Any:
                              "use model mc-table without the reference)", str(scene.mesh.path.name))
     shape = Mesh(mesh)
     eta = scene.material.eta
-    if _has_point_like_lights(scene) and abs(eta - 1.0) >= 1e-12 and not shape.geometry().convex:
+    if (_has_point_like_lights(scene) and abs(eta - 1.0) >= 1e-12
+            and not refracted_point_lights_supported(shape.geometry())):
         key = "point_lights" if scene.point_lights else "directional_lights"
         raise SceneFileError(file, key, f"no point or directional lights with model mc-table+reference on this "
                              f"non-convex mesh at eta = {eta:g}: the Monte Carlo renderer connects point lights "
-                             "through a refracting (eta != 1) boundary only for convex meshes; light the scene "
-                             "with an environment map ([environment], any mesh), set material.eta = 1, or use "
-                             "model mc-table without the reference", f"{scene.mesh.path.name} (not convex)")
+                             "through a refracting (eta != 1) non-convex boundary only for meshes of at most "
+                             f"{MAX_CONNECTION_PLANES} distinct face planes; light the scene with an environment map "
+                             "([environment], any mesh), set material.eta = 1, or use model mc-table without the "
+                             "reference", f"{scene.mesh.path.name} (not convex, too many face planes)")
     if scene.point_lights:
         inside = shape.contains(np.array([p.position_mm for p in scene.point_lights]))
         if inside.any():

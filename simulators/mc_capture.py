@@ -211,12 +211,13 @@ def led_environment(led_positions_mm: npt.ArrayLike, emission: npt.ArrayLike, *,
 
 
 def _point_lights_supported(obj: Any, shape: Any) -> bool:
-    """Point lights work for every shape at eta = 1 and, at eta != 1, for analytic shapes and convex meshes
-    (refracted connections face by face, :mod:`simulators.mc.nee`)."""
+    """Point lights work for every shape at eta = 1 and, at eta != 1, for analytic shapes, convex meshes and
+    non-convex meshes of few face planes (refracted connections face by face, :mod:`simulators.mc.nee`)."""
     from simulators.mc import Mesh
+    from simulators.mc.shapes import refracted_point_lights_supported
 
     return (not isinstance(shape, Mesh) or abs(float(obj.eta) - 1.0) < 1e-12
-            or bool(shape.geometry().convex))
+            or refracted_point_lights_supported(shape.geometry()))
 
 
 def led_lights(obj: Any, shape: Any, led_positions_mm: npt.ArrayLike, emission: npt.ArrayLike,
@@ -233,8 +234,9 @@ def led_lights(obj: Any, shape: Any, led_positions_mm: npt.ArrayLike, emission: 
         mode = "points" if few and _point_lights_supported(obj, shape) else "distant"
     if mode == "points":
         if not _point_lights_supported(obj, shape):
-            raise ValueError("point LEDs through a refractive (eta != 1) non-convex mesh boundary are not "
-                             'supported by the Monte Carlo renderer: use leds="distant", a convex mesh or eta = 1')
+            raise ValueError("point LEDs through a refractive (eta != 1) non-convex mesh boundary of this many "
+                             "face planes are not supported by the Monte Carlo renderer: use leds=\"distant\", a "
+                             "convex mesh, a mesh of fewer planes or eta = 1")
         return PointLights(pos[lit], em[lit]), mode
     center = getattr(obj, "center_mm", None)
     if center is None:

@@ -5,7 +5,8 @@ A scene is a :class:`SceneSpec` (plain numbers, JSON-able, hashed for the cache)
 - shape: ``cube`` (edge = size), ``pyramid`` (square base = size, height 0.7 size), ``sphere`` (icosphere with
   320 faces, diameter = size), ``box`` (5 x 20 x 40 mm in a random axis order); size 5-40 mm, at most 14 l_d
   of the material's shortest channel (so that patches of ~l_d/3 fit the patch budget); turned by ``yaw_deg`` about
-  the vertical, centred at ``position_mm``. All convex (point lights through a refracting mesh need that).
+  the vertical, centred at ``position_mm``. All convex; the non-convex family (``lblock``, ``ushape``: issue 17,
+  self-shadowing) is designed in benchmarks/zoo/nonconvex.py, indices 24 on, outside :func:`draw_zoo`.
 - camera: looks at the object centre from ``camera_distance_mm`` at ``camera_elevation_deg`` above the horizon
   and ``camera_azimuth_deg``; the object spans ~70 % of the frame. Five scenes are drawn at 22-30 deg elevation,
   where a face is seen 60-68 deg from its normal (grazing, still inside the estimator's 70 deg limit).
@@ -127,7 +128,11 @@ class SceneSpec:
     def mesh(self) -> trimesh.Trimesh:
         """The object in the z-up world (mm), outward winding."""
         s = self.size_mm
-        if self.shape == "cube":
+        if self.shape in ("lblock", "ushape"):   # the non-convex family (benchmarks/zoo/nonconvex.py)
+            from .nonconvex import nonconvex_mesh
+
+            m = nonconvex_mesh(self.shape, self.dims_mm)
+        elif self.shape == "cube":
             m = trimesh.creation.box(extents=(s, s, s))
         elif self.shape == "box":
             m = trimesh.creation.box(extents=self.dims_mm)

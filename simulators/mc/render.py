@@ -11,7 +11,8 @@ symmetric). The two kinds of light are estimated without bias by:
   sampled again) when it hits it, so inter-reflection through the outside is exact.
 - point lights: next-event estimation at every collision (:mod:`.nee`): straight-line connections with exact
   occlusion for eta = 1; refracted connections through smooth analytic boundaries (half-space, slab, box,
-  sphere) and convex triangle meshes for eta != 1 (non-convex meshes: eta = 1 only). A point light is never
+  sphere), convex triangle meshes, and non-convex meshes of at most ``MAX_CONNECTION_PLANES`` face planes
+  (shadow rays inside and outside, :func:`.nee.nonconvex_mesh_connections`) for eta != 1. A point light is never
   hit by an escaping walk, so nothing is counted twice.
 
 Estimator per pixel: ``spp`` independent paths, each with its own random stream keyed by (seed, channel, pixel,
@@ -43,7 +44,8 @@ from .lights import kernel_lights
 from .media import Medium
 from .optics import fresnel_r, reflect, refract
 from .rng import stream, uniform
-from .shapes import MESH, SPHERE, STACK_SIZE, Shape, nearest_hit
+from .shapes import (MAX_CONNECTION_PLANES, MESH, SPHERE, STACK_SIZE, Shape, nearest_hit,
+                     refracted_point_lights_supported)
 from .walk import EXITED, TRUNCATED, walk
 
 __all__ = ["MCImage", "render"]
@@ -320,8 +322,8 @@ def render(shape: Shape, media: Medium | Sequence[Medium], camera: Any, lights: 
     refracting non-convex meshes, whose connections are not supported, nor refracting meshes of more than
     :data:`ENV_NEE_MAX_FLAT_FACES` flat faces, whose connections cost a scan of every face: there escaping paths
     find them). Raises ValueError for a point light inside the
-    object, for media with different eta, or for point lights with a non-convex mesh and eta != 1 (not supported:
-    refracted connections are found face by face, which needs every face that faces the light to see it).
+    object, for media with different eta, or for point lights with eta != 1 through a non-convex mesh of more than
+    :data:`.shapes.MAX_CONNECTION_PLANES` distinct face planes (the connections are searched plane by plane).
     """
     ms = _media_list(media)
     etas = {m.eta for m in ms}
@@ -335,10 +337,12 @@ def render(shape: Shape, media: Medium | Sequence[Medium], camera: Any, lights: 
     if len(kl[0].positions_mm):
         if np.any(shape.contains(kl[0].positions_mm)):
             raise ValueError("point lights must lie outside the object")
-        if geo.kind == MESH and abs(eta - 1.0) >= 1e-12 and not geo.convex:
-            raise ValueError("point lights through a refractive (eta != 1) mesh boundary need a convex mesh, and "
-                             "this mesh is not convex (a vertex lies outside a face plane); use eta = 1, a convex "
-                             "mesh, an analytic shape, or distant lights")
+        if abs(eta - 1.0) >= 1e-12 and not refracted_point_lights_supported(geo):
+            raise ValueError(f"point lights through a refractive (eta != 1) non-convex mesh boundary need at most "
+                             f"{MAX_CONNECTION_PLANES} distinct face planes (the refracted connections are searched "
+                             "plane by plane with shadow rays), and this non-convex mesh has more (a scanned mesh: "
+                             "one plane per triangle); use eta = 1, a convex mesh, a simpler (planar-faced) mesh, "
+                             "or distant lights")
     origins, dirs = camera.pixel_rays()
     h, w = camera.height_px, camera.width_px
     o = np.ascontiguousarray(origins.reshape(-1, 3), dtype=np.float64)

@@ -24,7 +24,8 @@ from numba import njit
 
 __all__ = ["HALF_SPACE", "SLAB", "SPHERE", "BOX", "MESH", "Geometry", "HalfSpace", "Slab", "Sphere", "Box",
            "Mesh", "Shape", "nearest_hit", "surface_distance", "convex_polyhedron", "convex_face_table",
-           "FACE_TABLE_START", "STACK_SIZE"]
+           "FACE_TABLE_START", "STACK_SIZE", "plane_table", "MAX_CONNECTION_PLANES", "PLANE_TABLE",
+           "refracted_point_lights_supported"]
 
 HALF_SPACE, SLAB, SPHERE, BOX, MESH = 0, 1, 2, 3, 4
 STACK_SIZE = 64
@@ -279,12 +280,64 @@ def convex_face_table(vertices: npt.ArrayLike, faces: npt.ArrayLike, normal_tol:
     return np.asarray(out, dtype=np.float64)
 
 
+#: params[1] of a mesh's Geometry: 0 = convex face table (or none), PLANE_TABLE = the distinct face planes of a
+#: non-convex mesh (:func:`plane_table`), NO_PLANE_TABLE = non-convex with more than MAX_CONNECTION_PLANES planes
+PLANE_TABLE, NO_PLANE_TABLE = 1.0, -1.0
+#: refracted point-light connections through a non-convex mesh try every face plane (two BVH rays per candidate):
+#: beyond this many distinct planes (a scanned mesh: one per triangle) they are not offered
+MAX_CONNECTION_PLANES: int = 512
+
+
+def plane_table(vertices: npt.ArrayLike, faces: npt.ArrayLike, normal_tol: float = 1e-6, offset_rel_tol: float = 1e-6,
+                max_planes: int = MAX_CONNECTION_PLANES) -> FloatArray | None:
+    """The distinct planes of a (non-convex) mesh's faces, in the layout of :func:`convex_face_table` with no edges
+    (each record: nx, ny, nz, c, p0x, p0y, p0z, 0) and params[1] = :data:`PLANE_TABLE`; None when there are more
+    than ``max_planes``. Triangles join the first plane whose unit normal agrees within ``normal_tol`` and offset
+    within ``offset_rel_tol`` x the bounding-box diagonal (greedy, so two planes' normals or offsets always differ
+    by more than that: a connection point b is found on one plane only). Used by
+    :func:`simulators.mc.nee.nonconvex_mesh_connections`, which finds the face that holds b by a ray cast."""
+    v, f, keep, nrm, diag = _unit_face_normals(vertices, faces)
+    off = np.einsum("ij,ij->i", nrm, v[f[keep, 0]])
+    # a cheap upper bound first (rounding only splits planes): skip the greedy pass for scanned meshes
+    coarse = np.unique(np.round(np.c_[nrm / (100 * normal_tol), off / (100 * offset_rel_tol * diag)]), axis=0)
+    if len(coarse) > 8 * max_planes:
+        return None
+    label = np.full(len(keep), -1, dtype=np.int64)
+    out: list[float] = [0.0, PLANE_TABLE] + [0.0] * (FACE_TABLE_START - 2)
+    n_planes = 0
+    for i in range(len(keep)):
+        if label[i] >= 0:
+            continue
+        same = np.flatnonzero((label < 0) & (np.linalg.norm(nrm - nrm[i], axis=1) <= normal_tol)
+                              & (np.abs(off - off[i]) <= offset_rel_tol * diag))
+        label[same] = n_planes
+        n_planes += 1
+        if n_planes > max_planes:
+            return None
+        n = nrm[same].mean(axis=0)
+        n /= np.linalg.norm(n)
+        pts = v[np.unique(f[keep[same]].ravel())]
+        c = float(np.mean(pts @ n))
+        p0 = pts.mean(axis=0)
+        p0 = p0 + (c - float(p0 @ n)) * n
+        out += [*n, c, *p0, 0.0]
+    out[0] = float(n_planes)
+    return np.asarray(out, dtype=np.float64)
+
+
+def refracted_point_lights_supported(geometry: Geometry) -> bool:
+    """Can :func:`simulators.mc.render` connect point lights through this shape's boundary at eta != 1? Analytic
+    shapes, convex meshes, and non-convex meshes of at most :data:`MAX_CONNECTION_PLANES` face planes."""
+    return geometry.kind != MESH or geometry.convex or geometry.params[1] == PLANE_TABLE
+
+
 @dataclass(frozen=True)
 class Mesh:
     """A closed (watertight) triangle mesh; face winding gives the outward normals (inverted if the signed volume
     is negative). Needs ``trimesh`` only to read the mesh; ray queries use this module's BVH. ``geometry().convex``
-    is trimesh's ``is_convex`` and :func:`convex_polyhedron` (point lights with eta != 1 need it); a convex mesh's
-    ``params`` hold its flat faces (:func:`convex_face_table`) for the refracted point-light connections."""
+    is trimesh's ``is_convex`` and :func:`convex_polyhedron`; a convex mesh's ``params`` hold its flat faces
+    (:func:`convex_face_table`) for the refracted point-light connections, a non-convex one's its distinct face
+    planes (:func:`plane_table`; point lights with eta != 1 need it, :func:`refracted_point_lights_supported`)."""
 
     mesh: Any  # trimesh.Trimesh
     leaf_size: int = 4
@@ -303,7 +356,11 @@ class Mesh:
             bvh = build_bvh(v, f, self.leaf_size)
             scale = float(np.abs(v).max() + np.ptp(v, axis=0).max())
             convex = bool(self.mesh.is_convex) and convex_polyhedron(v, f)
-            prm = convex_face_table(v, f) if convex else []
+            if convex:
+                prm = convex_face_table(v, f)
+            else:
+                table = plane_table(v, f)
+                prm = table if table is not None else [0.0, NO_PLANE_TABLE]
             self._cache["g"] = _geometry(MESH, prm, scale, convex, bvh)
         return self._cache["g"]
 

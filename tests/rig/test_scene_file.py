@@ -778,11 +778,17 @@ def test_mc_reference_environment_orientation_is_the_estimators(tmp_path):
     assert np.max(np.abs(np.array(wrong_ratios) - 1.0)) > 0.3
 
 
-def test_mc_reference_refuses_point_lights_through_a_non_convex_refracting_mesh(tmp_path, capsys):
-    """A non-convex mesh under a point light at eta 1.3: exit status 2 and a message that says why and what to
-    do, before any fit."""
+def test_mc_reference_refuses_point_lights_through_a_non_convex_refracting_mesh_of_many_planes(tmp_path, capsys):
+    """A non-convex mesh of more face planes than the renderer's refracted connections search (every triangle
+    its own plane, like a scanned mesh) under a point light at eta 1.3: exit status 2 and a message that says why
+    and what to do, before any fit. (Few planes, e.g. the dented pyramid as it is, are rendered: issue 17.)"""
+    from simulators.mc.shapes import MAX_CONNECTION_PLANES
+
     cam = _mc_camera(24)
-    dented = _pyramid(dent_mm=4.0)
+    dented = _pyramid(dent_mm=4.0).subdivide().subdivide().subdivide().subdivide()
+    v = np.array(dented.vertices) + np.random.default_rng(0).normal(scale=1e-3 * MC_EDGE_MM, size=dented.vertices.shape)
+    dented = trimesh.Trimesh(v, dented.faces, process=False)
+    assert len(dented.faces) > 2 * MAX_CONNECTION_PLANES
     assert dented.is_watertight and not dented.is_convex and dented.volume > 0
     dented.export(tmp_path / "pyramid.ply")
     write_exr(tmp_path / "img.exr", np.zeros((24, 24), np.float32))

@@ -14,8 +14,9 @@ Checks:
 4. a pyramid mesh at eta 1.3 renders finite and non-negative, and at eta = 1 + 1e-6 matches the eta = 1 render of
    the same seed with every connection evaluated (nee_tau -> 0; the paths are the same up to Fresnel events of
    probability ~1e-13);
-5. a non-convex mesh + point light + eta 1.3 raises ValueError naming convexity; the MC capture bridge uses point
-   lights for convex meshes and falls back to distant light for non-convex ones.
+5. a non-convex mesh of more than MAX_CONNECTION_PLANES face planes + point light + eta 1.3 raises ValueError; the
+   MC capture bridge uses point lights for convex meshes and non-convex ones of few planes, and falls back to
+   distant light beyond (non-convex meshes of few planes: tests/simulators/test_mc_nonconvex_point_light.py).
 
 Timing (2 shared cores, numba caches warm): ~1-3 s per test; a cold numba cache adds ~40-60 s of compilation to the
 first render test.
@@ -30,7 +31,7 @@ from estimation.camera import PinholeCamera
 from estimation.single_image import PointLights
 from simulators.mc import Box, Medium, Mesh, render
 from simulators.mc.nee import light_contribution, min_inside_length
-from simulators.mc.shapes import STACK_SIZE
+from simulators.mc.shapes import MAX_CONNECTION_PLANES, STACK_SIZE
 from test_mc_frames_single_image import pyramid_mesh
 
 LO_MM = np.array([-2.0, -3.0, -2.5])
@@ -156,26 +157,30 @@ def test_pyramid_under_a_point_light_at_eta_1_3_and_its_eta_1_limit():
     assert rel.max() < 1e-4
 
 
-def test_non_convex_mesh_with_point_lights_and_eta_raises():
-    annulus = Mesh(trimesh.creation.annulus(r_min=2.0, r_max=5.0, height=2.0))
+def test_non_convex_mesh_of_many_planes_with_point_lights_and_eta_raises():
+    """Non-convex meshes of few face planes are connected (tests/simulators/test_mc_nonconvex_point_light.py);
+    beyond MAX_CONNECTION_PLANES distinct planes they are refused at eta != 1."""
+    annulus = Mesh(trimesh.creation.annulus(r_min=2.0, r_max=5.0, height=2.0, sections=2 * MAX_CONNECTION_PLANES))
     assert not annulus.geometry().convex
     cam = _camera(4)
     light = PointLights([[0.0, -9.0, 3.0]], [1.0])
-    with pytest.raises(ValueError, match="convex"):
+    with pytest.raises(ValueError, match="non-convex"):
         render(annulus, Medium(1.0, 0.1, 0.0, 1.3), cam, light, spp=2)
     render(annulus, Medium(1.0, 0.1, 0.0, 1.0), cam, light, spp=2)   # eta = 1: exact occlusion, supported
 
 
-def test_capture_bridge_uses_point_lights_for_convex_meshes_only():
+def test_capture_bridge_uses_point_lights_unless_the_mesh_has_too_many_planes():
     from simulators.mc_capture import MCSettings, led_lights, mc_shape
     from simulators.scene import MeshObject
 
     pos, em = np.array([[0.0, -300.0, 300.0]]), np.ones((1, 3))
-    for mesh, convex in ((_pyramid(), True), (trimesh.creation.annulus(r_min=2.0, r_max=5.0, height=2.0), False)):
+    many = trimesh.creation.annulus(r_min=2.0, r_max=5.0, height=2.0, sections=2 * MAX_CONNECTION_PLANES)
+    for mesh, convex in ((_pyramid(), True), (trimesh.creation.annulus(r_min=2.0, r_max=5.0, height=2.0), True),
+                         (many, False)):
         obj = MeshObject(mesh, (1.0,) * 3, (0.02,) * 3, 1.3)
         shape = mc_shape(obj)
         assert isinstance(shape, Mesh)
         assert led_lights(obj, shape, pos, em, MCSettings())[1] == ("points" if convex else "distant")
         if not convex:
-            with pytest.raises(ValueError, match="convex"):
+            with pytest.raises(ValueError, match="non-convex|convex|planes"):
                 led_lights(obj, shape, pos, em, MCSettings(leds="points"))
