@@ -20,7 +20,7 @@ into the body: non-convex, with a hole), ~100k faces (``--quick``: ~26k). A pinh
 3. **Cast shadows** (issue 17 part 2): shadow rays of a point light from 10k face centres of the full mesh
    against all its faces (``estimation.shadows.point_light_visibility``), and the environment-map shadows of a
    sky with a sun (64 x 128 map, default 16 cell rows) on the ~10k patches (``environment_irradiance``).
-4. **End to end**: ``rig estimate single-image`` (``rig.scene_file.load_scene`` + ``estimate_scene``, model
+4. **End to end**: ``rig estimate single-image`` (``rig.scene_file.load_scene`` + ``rig.scene_estimate.estimate_scene``, model
    ``mc-table``, method direct) on a scene file of the ~10k-face tessellation (10,240 patches; the scene file
    holds one patch per face — patch decimation of the 100k-face mesh is not built), lit by a point light, its
    image the estimator's own forward model with shadows painted per face through the ray-cast pixel map; with
@@ -231,7 +231,8 @@ def shadows(mesh: trimesh.Trimesh, patch_mesh: trimesh.Trimesh, cam: PinholeCame
 def end_to_end(patch_mesh: trimesh.Trimesh, cam: PinholeCamera, folder: Path) -> dict[str, Any]:
     """Time rig estimate single-image on a scene file of ``patch_mesh`` (see the module docstring, item 4)."""
     from rig.imageio import write_exr
-    from rig.scene_file import estimate_scene, load_scene
+    from rig.scene_estimate import estimate_scene
+    from rig.scene_file import load_scene
 
     ssp, sa, eta, inten = 1.2, 0.01, 1.3, 1e6
     p = patches_from_mesh(patch_mesh, cam)

@@ -130,7 +130,7 @@ def file_check(scene: Any, spec: SceneSpec, spp: int) -> list[float]:
 
 def run_model(scene: Any, model: str, spec: SceneSpec, ref_spp: int, ref_iterations: int,
               shadows: str | None = None) -> dict[str, Any]:
-    from rig.scene_file import estimate_scene
+    from rig.scene_estimate import estimate_scene
 
     t0 = time.perf_counter()
     with captured() as rec:

@@ -286,7 +286,7 @@ def _int_at_least(lo: int):
 
 def _cmd_estimate(args: argparse.Namespace) -> int:
     if args.what == "single-image":
-        from .scene_file import run_cli as run_scene  # a scene file a user brings (docs/scene-file.md)
+        from .scene_estimate import run_cli as run_scene  # a scene file a user brings (docs/scene-file.md)
         return run_scene(args)
     if args.what == "gradients":
         from .capture_folder import run_cli as run_folder  # a capture folder (docs/capture-folder.md)

@@ -1,6 +1,6 @@
 """The Monte Carlo reference of a scene file: ``--model mc-table+reference`` (docs/scene-file.md).
 
-:func:`scene_reference` turns a loaded :class:`rig.scene_file.Scene` into a
+:func:`scene_reference` turns a loaded :class:`rig.scene_spec.Scene` into a
 :class:`rig.mc_reference.MonteCarloReference` for :func:`estimation.model_correction.estimate_with_reference`:
 
 - shape: the mesh as read (mm, world frame, before ``max_edge_mm`` subdivision, which only adds coplanar faces)
@@ -18,8 +18,8 @@
   sampled with the scene's ``window_px``.
 
 Frame. The renderer reads a lat-long map in its native convention (+z up, phi from +x towards +y). The scene
-gives the map's orientation as the matrix M of :attr:`rig.scene_file.EnvironmentSpec.rotation` (native -> world,
-the one the estimator uses through :func:`rig.scene_file.environment_directions`). Instead of resampling the
+gives the map's orientation as the matrix M of :attr:`rig.scene_spec.EnvironmentSpec.rotation` (native -> world,
+the one the estimator uses through :func:`rig.scene_spec.environment_directions`). Instead of resampling the
 map, the whole scene (mesh, camera, lights, patch centres) is rotated into the map's frame by M^T, which is exact
 and leaves every projection unchanged. A clockwise azimuth makes M a reflection; then the map's columns are
 reversed (j -> W - 1 - j maps pixel centres onto pixel centres) and the remaining rotation is proper.
@@ -71,7 +71,7 @@ def reference_frame(scene: Any) -> ReferenceFrame:
 
 def _rotate_camera(cam: Any, rot: Array) -> Any:
     """The same camera in the render frame: R' = R rot^T, C' = rot C (projections of rotated points unchanged)."""
-    from .scene_file import DistortedCamera
+    from .scene_spec import DistortedCamera
 
     pin = cam.pinhole if isinstance(cam, DistortedCamera) else cam
     r_new = np.asarray(pin.R) @ rot.T
@@ -112,12 +112,12 @@ def _has_point_like_lights(scene: Any) -> bool:
 
 
 def check_reference_scene(scene: Any) -> Any:
-    """Refuse what the Monte Carlo reference cannot render (:class:`rig.scene_file.SceneFileError` naming the
+    """Refuse what the Monte Carlo reference cannot render (:class:`rig.scene_spec.SceneFileError` naming the
     key); return the :class:`simulators.mc.Mesh` of the scene's surface (world frame)."""
     from simulators.mc import Mesh
     from simulators.mc.shapes import MAX_CONNECTION_PLANES, refracted_point_lights_supported
 
-    from .scene_file import SceneFileError
+    from .scene_spec import SceneFileError
 
     file = str(scene.path)
     mesh = scene.render_mesh_data if scene.render_mesh_data is not None else scene.mesh_data
@@ -152,7 +152,7 @@ def scene_reference(scene: Any, patches: Patches, valid_px: NDArray[np.bool_], *
     from simulators.mc import Mesh
 
     from .mc_reference import MonteCarloReference
-    from .scene_file import DistortedCamera, SceneFileError
+    from .scene_spec import DistortedCamera, SceneFileError
 
     check_reference_scene(scene)
     frame = reference_frame(scene)

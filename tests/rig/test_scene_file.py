@@ -34,7 +34,8 @@ from estimation.forward import (diffuse_exitance, irradiance_directional, irradi
 from estimation.single_image import EnvironmentMap
 from rig.cli import main as rig_main
 from rig.imageio import write_exr, write_float_tiff, write_png16, write_png8
-from rig.scene_file import SceneFileError, environment_directions, load_scene
+from rig.scene_file import load_scene
+from rig.scene_spec import SceneFileError, environment_directions
 from simulators.dng import write_cfa_dng
 
 SSP = np.array([1.09, 0.74, 0.55])  # skin2-R, skin1-R, potato-B (l_d 4.8, 3.7, 2.0 mm): sigma_a identifiable
@@ -301,7 +302,7 @@ def test_environment_rotation_key_equals_rotated_map(tmp_path, capsys):
 
 def test_environment_orientation_keys(tmp_path):
     """up / phi0 / azimuth / rotation_deg map the map's pixels to the documented world directions."""
-    from rig.scene_file import EnvironmentSpec
+    from rig.scene_spec import EnvironmentSpec
 
     h, w = 8, 16
     img = np.zeros((h, w, 1))
@@ -360,7 +361,7 @@ def test_lat_long_conventions_of_common_renderers(tmp_path, tool):
     """The keys of docs/scene-file.md's table map every pixel of a map made for that tool to the direction the
     tool looks it up in (its lookup formula inverted). The ICT-probe row is the former y-up example of the docs;
     it is 180 degrees off for a Mitsuba map."""
-    from rig.scene_file import EnvironmentSpec
+    from rig.scene_spec import EnvironmentSpec
 
     h, w = 8, 16
     to_dir, keys = LAT_LONG_TOOLS[tool]
@@ -805,7 +806,7 @@ def test_mc_reference_refuses_point_lights_through_a_non_convex_refracting_mesh_
 def test_mc_reference_pixel_rays_of_a_distorted_camera(tmp_path):
     """With [camera].distortion the reference renders the distorted image: the ray of every pixel centre
     projects back onto that pixel through OpenCV's model (cv2.projectPoints)."""
-    from rig.scene_file import DistortedCamera
+    from rig.scene_spec import DistortedCamera
 
     cam = _mc_camera(40)
     dist = [-20.0, 150.0, 0.002, -0.001, 0.0]

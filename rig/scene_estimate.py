@@ -1,0 +1,429 @@
+"""Scene files, the estimate: :func:`estimate_scene` runs :func:`estimation.single_image.estimate_single_image`
+(or the Monte-Carlo-reference-corrected form, :mod:`rig.scene_reference`) on a scene read by
+:func:`rig.scene_file.load_scene`, and :func:`run_cli` implements ``rig estimate single-image SCENE``
+(docs/scene-file.md).
+
+From image to observations the project's own helpers are reused (``rig.estimate``): each visible patch is found by
+ray casting through the one ray engine (estimation.rays) and its centre sampled from the image by
+``sample_at_points`` (mean over a ``window_px`` square, bilinear between window centres).
+"""
+from __future__ import annotations
+
+import json
+import math
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from drivers.atomic import atomic_write
+
+from .provenance import jsonable
+from .scene_file import load_scene
+from .scene_spec import (METHODS, MODELS, REFERENCE_MODEL, RESULT_FORMAT, Array, Scene, SceneFileError,
+                         environment_directions, environment_grid_shape)
+from .session import software_version
+
+
+__all__ = ["estimate_scene", "format_table", "run_cli"]
+
+
+def _irradiance(scene: Scene, patches: Any) -> Array:
+    """Fresnel-transmitted irradiance E_t (K, C) of all the scene's lights on the patches."""
+    from estimation.single_image import DirectionalLights, PointLights, patch_irradiance
+
+    eta = scene.material.eta
+    n_ch = scene.channels
+    e = np.zeros((patches.centers_mm.shape[0], n_ch))
+    if scene.point_lights:
+        pl = PointLights(np.array([p.position_mm for p in scene.point_lights]),
+                         np.array([p.intensity for p in scene.point_lights]))
+        e += patch_irradiance(patches, pl, eta)
+    if scene.directional_lights:
+        dl = DirectionalLights(np.array([d.direction for d in scene.directional_lights]),
+                               np.array([d.irradiance for d in scene.directional_lights]))
+        e += patch_irradiance(patches, dl, eta)
+    if scene.environment is not None and scene.environment_data is not None:
+        d, w = environment_directions(scene.environment, scene.environment_data)
+        grid = environment_grid_shape(scene.environment, scene.environment_data)   # per-cell cast shadows
+        e += patch_irradiance(patches, DirectionalLights(d, np.broadcast_to(w, (w.shape[0], n_ch)), grid), eta)
+    return e
+
+
+def _specular_patches(scene: Scene, patches: Any) -> NDArray[np.bool_]:
+    """Patches whose normal lies within ``specular_cone_deg`` of the half vector of any point/directional light
+    and the camera: where a mirror-like highlight of that light can appear."""
+    c = patches.centers_mm
+    v = scene.camera.camera.C[None, :] - c
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    to_lights = [np.asarray(p.position_mm)[None, :] - c for p in scene.point_lights]
+    to_lights += [np.broadcast_to(np.asarray(d.direction), c.shape) for d in scene.directional_lights]
+    cos_cone = math.cos(math.radians(scene.image.specular_cone_deg))
+    spec = np.zeros(c.shape[0], dtype=bool)
+    for lvec in to_lights:
+        lv = lvec / np.linalg.norm(lvec, axis=1, keepdims=True)
+        h = lv + v
+        h /= np.maximum(np.linalg.norm(h, axis=1, keepdims=True), 1e-12)
+        spec |= np.einsum("kc,kc->k", h, patches.normals) >= cos_cone
+    return spec
+
+
+# ---------------------------------------------------------------------------------------------- estimation
+def _pixel_variance(scene: Scene, usable: NDArray[np.bool_]) -> tuple[Array, dict[str, Any]]:
+    """Per-pixel variance of the image values (H, W, C) and a description of the noise model: the scene's
+    ``[noise]``, or without one a signal-dependent fit var = a value + b to the usable pixels
+    (:func:`estimation.noise.estimate_signal_dependent_noise`)."""
+    from estimation.noise import estimate_signal_dependent_noise
+
+    img = scene.image_data
+    nz = scene.noise
+    if nz is None:
+        fit = estimate_signal_dependent_noise(img, usable)
+        return fit.variance(img), {"source": "estimated from the image", "model": "var = a value + b",
+                                   **fit.as_dict()}
+    if nz.stderr_path is not None:
+        assert scene.stderr_data is not None
+        return np.square(scene.stderr_data), {"source": "given", "model": "standard-error image",
+                                              "path": str(nz.stderr_path)}
+    if nz.sigma is not None:
+        return (np.broadcast_to(np.square(np.asarray(nz.sigma))[None, None, :], img.shape).copy(),
+                {"source": "given", "model": "constant sigma", "sigma": list(nz.sigma)})
+    assert nz.electrons_per_value is not None and nz.read_noise is not None
+    var = np.maximum(img, 0.0) / nz.electrons_per_value + np.square(np.asarray(nz.read_noise))[None, None, :]
+    if scene.image.format == "raw" and img.shape[2] == 3:
+        var = var / np.array([1.0, 2.0, 1.0])  # G of a RAW superpixel is the mean of two photosites
+    return var, {"source": "given", "model": "shot + read noise", "electrons_per_value": nz.electrons_per_value,
+                 "read_noise": list(nz.read_noise)}
+
+
+
+
+def _scene_summary(scene: Scene) -> dict[str, Any]:
+    cam = scene.camera.camera
+    out: dict[str, Any] = {
+        "name": scene.name,
+        "mesh": {"path": scene.mesh.path, "units": scene.mesh.units, "mm_per_unit": scene.mesh.mm_per_unit,
+                 "translation_mm": scene.mesh.translation_mm, "faces": int(len(scene.mesh_data.faces)),
+                 "notes": list(scene.mesh.notes)},
+        "camera": {"width_px": cam.width_px, "height_px": cam.height_px, "fx_px": cam.fx_px, "fy_px": cam.fy_px,
+                   "cx_px": cam.cx_px, "cy_px": cam.cy_px, "rotation": cam.rotation, "center_mm": cam.center_mm,
+                   "distortion": scene.camera.distortion, "pose_from": scene.camera.pose_from,
+                   "intrinsics_of": scene.camera.intrinsics_of},
+        "image": {"path": scene.image.path, "format": scene.image.format, "shape": scene.image.shape,
+                  "radiance_scale": scene.image.radiance_scale, "cross_polarized": scene.image.cross_polarized,
+                  "specular_free": scene.image.specular_free, "saturation": scene.image.saturation,
+                  "mask": scene.image.mask_path},
+        "lights": {"point": [{"position_mm": p.position_mm, "intensity": p.intensity} for p in scene.point_lights],
+                   "directional": [{"direction": d.direction, "irradiance": d.irradiance}
+                                   for d in scene.directional_lights],
+                   "environment": None if scene.environment is None else {
+                       "path": scene.environment.path, "radiance_scale": scene.environment.radiance_scale,
+                       "up": scene.environment.up, "phi0": scene.environment.phi0,
+                       "azimuth": scene.environment.azimuth, "rotation_deg": scene.environment.rotation_deg,
+                       "max_size": scene.environment.max_size}},
+        "material": {"eta": scene.material.eta, "model": scene.material.model},
+        "estimation": {"method": scene.estimation.method, "bin_mm": scene.estimation.bin_mm,
+                       "window_px": scene.estimation.window_px,
+                       "reference_spp": scene.estimation.reference_spp,
+                       "reference_iterations": scene.estimation.reference_iterations,
+                       "reference_seed": scene.estimation.reference_seed,
+                       "max_view_angle_deg": scene.estimation.max_view_angle_deg,
+                       "occlusion": scene.estimation.occlusion, "shadows": scene.estimation.shadows,
+                       "cutoff_mm": scene.estimation.cutoff_mm,
+                       "model_error": scene.estimation.model_error},
+        "noise": None if scene.noise is None else {"sigma": scene.noise.sigma,
+                                                   "electrons_per_value": scene.noise.electrons_per_value,
+                                                   "read_noise": scene.noise.read_noise,
+                                                   "stderr_path": None if scene.noise.stderr_path is None
+                                                   else str(scene.noise.stderr_path)},
+    }
+    return out
+
+
+def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None = None,
+                   reference_spp: int | None = None, reference_iterations: int | None = None,
+                   reference_seed: int | None = None, shadows: bool | str | None = None) -> dict[str, Any]:
+    """Run the single-image method on a loaded scene; return a JSON-able result (docs/scene-file.md, "Output").
+
+    ``method`` overrides the scene's ``[estimation].method``, ``model`` its ``[material].model``, and the
+    ``reference_*`` arguments its ``[estimation].reference_*`` keys (used by ``model = "mc-table+reference"``:
+    the Monte Carlo table fit corrected by Monte Carlo renders of the scene, :mod:`rig.scene_reference`). A failed
+    estimate returns ``success: false`` with the reason in ``message`` (never raises for that); input errors were
+    raised by :func:`load_scene`, or are raised here as :class:`SceneFileError` when only the reference cannot
+    handle them (e.g. point lights through a non-convex refracting mesh). ``shadows`` ("auto", True/"on",
+    False/"off") overrides ``[estimation].shadows``: cast shadows of the lights on the mesh (docs/visibility.md).
+    """
+    from estimation.single_image import SingleImageResult, estimate_single_image, patches_from_mesh
+
+    from .estimate import pixel_faces, sample_at_points
+
+    t0 = time.perf_counter()
+    meth = method or scene.estimation.method
+    if meth not in METHODS:
+        raise SceneFileError(str(scene.path), "estimation.method", "one of " + ", ".join(METHODS), meth)
+    model_name = model or scene.material.model
+    if model_name not in MODELS:
+        raise SceneFileError(str(scene.path), "material.model", "one of " + ", ".join(MODELS), model_name)
+    spp = scene.estimation.reference_spp if reference_spp is None else int(reference_spp)
+    iterations = scene.estimation.reference_iterations if reference_iterations is None else int(reference_iterations)
+    ref_seed = scene.estimation.reference_seed if reference_seed is None else int(reference_seed)
+    if spp < 2 or iterations < 1 or ref_seed < 0:
+        raise ValueError(f"reference_spp must be >= 2, reference_iterations >= 1, reference_seed >= 0; got {spp}, "
+                         f"{iterations}, {ref_seed}")
+    cam = scene.camera.model
+    mesh = scene.mesh_data
+    est = scene.estimation
+    cos_min = math.cos(math.radians(est.max_view_angle_deg))
+    sh = est.shadows if shadows is None else {"on": True, "off": False}.get(shadows, shadows)  # type: ignore[call-overload]
+    if not (sh == "auto" or isinstance(sh, bool)):
+        raise ValueError(f"shadows must be 'auto', 'on', 'off', True or False; got {shadows!r}")
+    patches = patches_from_mesh(mesh, cam, cos_min=cos_min, occlusion=est.occlusion, shadows=sh)
+    img = scene.image_data
+    n_ch = img.shape[2]
+    h, w = img.shape[:2]
+    faces = pixel_faces(mesh, cam)
+    on_object = faces >= 0
+    user_ok = np.ones((h, w), bool) if scene.mask_data is None else scene.mask_data
+    sat_ok = np.ones((h, w), bool) if scene.image.saturation is None else ~np.any(
+        img >= scene.image.saturation, axis=2)
+    valid = (on_object & user_ok & sat_ok)[..., None] & np.isfinite(img)
+    if scene.stderr_data is not None:
+        valid &= np.isfinite(scene.stderr_data)
+    var, noise_info = _pixel_variance(scene, np.all(valid, axis=2))
+    obs, sigma = sample_at_points(img, var, valid, cam, patches.centers_mm, window_px=est.window_px)
+    obs[~patches.visible] = np.nan
+
+    # what excluded the visible patches (a patch can be counted under several reasons)
+    ones = np.ones((h, w, 1))
+    vis_centers = patches.centers_mm[patches.visible]
+    base, _ = sample_at_points(ones, ones * 0, on_object[..., None], cam, vis_centers, window_px=est.window_px)
+
+    def lost(extra_ok: NDArray[np.bool_]) -> int:
+        cut, _ = sample_at_points(ones, ones * 0, (on_object & extra_ok)[..., None], cam, vis_centers,
+                                   window_px=est.window_px)
+        return int(np.sum(np.isfinite(base[:, 0]) & ~np.isfinite(cut[:, 0])))
+
+    excluded: dict[str, int] = {
+        "off_object_or_frame": int(np.sum(~np.isfinite(base[:, 0]))),
+        "mask": lost(user_ok) if scene.mask_data is not None else 0,
+        "saturated": lost(sat_ok) if scene.image.saturation is not None else 0,
+    }
+    spec = np.zeros(len(patches.areas_mm2), bool)
+    if not scene.image.specular_free:
+        spec = _specular_patches(scene, patches) & patches.visible
+        obs[spec] = np.nan
+    excluded["specular_cone"] = int(spec.sum())
+
+    k = np.asarray(scene.image.radiance_scale, float)[None, :]
+    factor = 2.0 if scene.image.cross_polarized else 1.0  # the analyzer passes half the depolarized diffuse light
+    obs = obs / k * factor
+    sigma = sigma / k * factor
+    e_t = _irradiance(scene, patches)
+    n_obs = np.isfinite(obs[patches.visible]).sum(axis=0)
+    fit_kw: dict[str, Any] = dict(method=meth, bin_mm=est.bin_mm, cutoff_mm=est.cutoff_mm,
+                                  noise_sigma=sigma,
+                                  model_error=est.model_error)
+    reference_out: dict[str, Any] | None = None
+    if model_name == REFERENCE_MODEL:
+        from estimation.model_correction import estimate_with_reference
+
+        from .scene_reference import scene_reference
+
+        valid_px = np.all(valid, axis=2)
+        ref, ref_info = scene_reference(scene, patches, valid_px, spp=spp)  # SceneFileError before any fit
+        try:
+            res = estimate_with_reference(obs, patches, e_t, scene.material.eta, ref, base_model="mc-table",
+                                          max_iterations=iterations, seed=ref_seed, **fit_kw)
+        except ValueError as exc:  # e.g. the reference has no value at any observed patch
+            res = SingleImageResult(False, f"Monte Carlo reference: {exc}", meth, model_name, scene.material.eta)
+        reference_out = {**ref_info, "base_model": "mc-table", "max_iterations": iterations, "seed": ref_seed,
+                         "steps": res.extra.get("reference", []), "converged": res.extra.get("converged"),
+                         "interval_propagation": res.extra.get("interval_propagation"),
+                         "renders": list(ref.renders),
+                         "render_seconds_total": float(sum(r["seconds"] for r in ref.renders)),
+                         "seconds_total": res.extra.get("seconds_total")}
+    else:
+        res = estimate_single_image(obs, patches, e_t, scene.material.eta, model=model_name, **fit_kw)
+    seconds = time.perf_counter() - t0
+    channels = ["R", "G", "B"] if n_ch == 3 else ["Y"]
+    out: dict[str, Any] = {
+        "format": RESULT_FORMAT, "format_version": 1, "estimator": "single-image",
+        "success": bool(res), "message": res.message if patches.visible.any() else
+        res.message + " (check the camera pose and that the mesh's face normals point outward)",
+        "method": res.method, "model": model_name, "eta": scene.material.eta, "channels": channels,
+        "seconds": seconds,
+        "observations": {"patches": int(len(patches.areas_mm2)), "visible": int(patches.visible.sum()),
+                         "observed_per_channel": n_obs.tolist(), "excluded_patches": excluded,
+                         "object_pixels": int(on_object.sum()), "patch_spacing_mm": patches.spacing_mm,
+                         "cast_shadows": patches.shadows,
+                         "nonfinite_pixels": int(scene.image_meta.get("nonfinite", 0))},
+        "radiometry": {"radiance_scale": list(scene.image.radiance_scale), "cross_polarized_factor": factor,
+                       "noise_model": noise_info},
+    }
+    if res:
+        ssp, sa = res.sigma_s_prime_per_mm, res.sigma_a_per_mm
+        out["parameters"] = {
+            "sigma_s_prime_per_mm": {"value": ssp, "ci95": res.sigma_s_prime_ci_per_mm},
+            "sigma_a_per_mm": {"value": sa, "ci95": res.sigma_a_ci_per_mm,
+                               "ci95_wald": res.sigma_a_ci_jacobian_per_mm},
+            "R_d": {"value": res.R_d, "ci95": res.R_d_ci},
+            "l_d_mm": {"value": res.l_d_mm, "ci95": res.l_d_ci_mm},
+            "D_mm": {"value": res.D_mm},
+            "albedo": {"value": ssp / (ssp + sa)},
+            "transport_mean_free_path_mm": {"value": 1.0 / (ssp + sa)},
+        }
+        out["correlation_log"] = res.correlation_log
+        out["sigma_a_identifiable"] = list(res.sigma_a_identifiable_per_channel)
+        out["identifiability_reason"] = res.identifiability_reason
+    out["model_bias"] = res.extra.get("model_bias")
+    if res:
+        out["status"] = res.extra.get("status")
+        out["status_reasons"] = res.extra.get("status_reasons")
+    else:  # a failed estimate is no measurement of anything
+        out["status"] = {"sigma_s_prime_per_mm": ["unknown"] * n_ch, "sigma_a_per_mm": ["unknown"] * n_ch}
+        out["status_reasons"] = [f"channel {c}: the estimate failed: {res.message}" for c in range(n_ch)]
+    if reference_out is not None:
+        out["reference"] = reference_out
+        out["converged"] = reference_out["converged"]
+    d = res.diagnostics
+    if d is not None:
+        out["diagnostics"] = {"condition_number": d.condition_number, "n_bins": d.n_bins,
+                              "empty_bins": d.empty_bins, "residual_rms": d.residual_rms,
+                              "relative_residual_rms": d.relative_residual_rms, "n_observations": d.n_observations,
+                              "n_patches": d.n_patches, "nfev": d.nfev, "solver_seconds": d.seconds,
+                              "regularization": d.regularization, "notes": list(d.notes)}
+    out["scene"] = _scene_summary(scene)
+    out["provenance"] = {
+        "scene": str(scene.path), "scene_sha256": scene.sha256,
+        "image": str(scene.image.path), "image_sha256": scene.image.sha256,
+        "mesh": str(scene.mesh.path), "mesh_sha256": scene.mesh.sha256,
+        "mask": None if scene.image.mask_path is None else str(scene.image.mask_path),
+        "mask_sha256": scene.image.mask_sha256,
+        "environment": None if scene.environment is None else str(scene.environment.path),
+        "environment_sha256": None if scene.environment is None else scene.environment.sha256,
+        "method": res.method, "software": "sssrig", "software_version": software_version(),
+        "python": platform.python_version(), "numpy": np.__version__,
+        "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
+    return jsonable(out)
+
+
+# ---------------------------------------------------------------------------------------------- CLI
+def _fmt(v: Any) -> str:
+    return "-" if v is None else f"{v:.4g}"
+
+
+def _cells(values: Any) -> str:
+    return "[" + ", ".join(_fmt(v) for v in (values or [])) + "]"
+
+
+def _reference_lines(result: dict[str, Any]) -> list[str]:
+    """The reference iteration of model mc-table+reference: parameters and render seconds per step, converged,
+    and the bias of the flat mc-table model in this scene."""
+    ref = result.get("reference")
+    if not ref:
+        return []
+    lines = [f"  Monte Carlo reference ({ref.get('spp')} spp per render, seed {ref.get('seed')}, at most "
+             f"{ref.get('max_iterations')} renders, window {ref.get('window_px')} px): converged "
+             f"{'yes' if ref.get('converged') else 'NO'}, {len(ref.get('renders', []))} renders, "
+             f"{ref.get('render_seconds_total', 0.0):.1f} s rendering",
+             f"    {'step':<10}{'sigma_s_prime [1/mm]':<28}{'sigma_a [1/mm]':<28}{'render s':<10}"
+             f"{'kappa median (reference / mc-table)'}"]
+    for st in ref.get("steps", []):
+        it = st.get("iteration")
+        label = "0 mc-table" if it == 0 else f"{it}"
+        lines.append(f"    {label:<10}{_cells(st.get('sigma_s_prime_per_mm')):<28}{_cells(st.get('sigma_a_per_mm')):<28}"
+                     f"{st.get('render_seconds', 0.0):<10.1f}{_cells(st.get('kappa_median'))}")
+    bias = result.get("model_bias") or {}
+    if "radiance_ratio_median" in bias:
+        lines.append(f"  model bias in this scene (mc-table / reference radiance per patch): median "
+                     f"{_cells(bias.get('radiance_ratio_median'))}, 5-95 % {_cells(bias.get('radiance_ratio_p05'))}"
+                     f"-{_cells(bias.get('radiance_ratio_p95'))}, rms log {_cells(bias.get('rms_log_ratio'))}")
+    for n in ref.get("notes", []):
+        lines.append(f"  reference: {n}")
+    return lines
+
+
+def format_table(result: dict[str, Any]) -> str:
+    """A readable table of the parameters with their 95 % intervals."""
+    prov = result.get("provenance", {})
+    obs = result.get("observations", {})
+    lines = [f"single-image estimate of {prov.get('scene', '?')}",
+             f"  method {result.get('method')}, model {result.get('model')}, eta {result.get('eta')}, "
+             f"{obs.get('visible', 0)} visible of {obs.get('patches', 0)} patches, observed per channel "
+             f"{obs.get('observed_per_channel')}, {result.get('seconds', 0.0):.1f} s"]
+    if not result.get("success"):
+        lines.append(f"  FAILED: {result.get('message')}")
+        lines += _reference_lines(result)
+        return "\n".join(lines)
+    chans = result["channels"]
+    lines.append("  " + f"{'quantity':<26}" + "".join(f"{c:<28}" for c in chans))
+    labels = [("sigma_s_prime_per_mm", "sigma_s' [1/mm]"), ("sigma_a_per_mm", "sigma_a [1/mm]"),
+              ("R_d", "R_d"), ("l_d_mm", "l_d = 1/sigma_tr [mm]"), ("D_mm", "D [mm]"),
+              ("albedo", "albedo alpha'"), ("transport_mean_free_path_mm", "1/sigma_t' [mm]")]
+    for key, label in labels:
+        p = result["parameters"][key]
+        cells = []
+        for c in range(len(chans)):
+            v = p["value"][c]
+            ci = p.get("ci95")
+            cell = _fmt(v) + (f" ({_fmt(ci[c][0])}-{_fmt(ci[c][1])})" if ci is not None else "")
+            cells.append(f"{cell:<28}")
+        lines.append("  " + f"{label:<26}" + "".join(cells))
+    ident = result.get("sigma_a_identifiable", [])
+    lines.append("  " + f"{'sigma_a identifiable':<26}" + "".join(f"{('yes' if i else 'NO'):<28}" for i in ident))
+    status = result.get("status") or {}
+    for key, label in (("sigma_s_prime_per_mm", "status sigma_s'"), ("sigma_a_per_mm", "status sigma_a")):
+        if key in status:
+            lines.append("  " + f"{label:<26}" + "".join(f"{v.upper() if v != 'ok' else 'ok':<28}" for v in status[key]))
+    lines.append("  (95 % intervals in parentheses; sigma_a: profile likelihood, lower bound 0 when one-sided)")
+    if not all(ident):
+        lines.append(f"  {result.get('identifiability_reason', '')}")
+    if any(v != "ok" for vals in status.values() for v in vals):
+        lines.append("  WEAK = not a measurement to quote without its interval: " +
+                     "; ".join(result.get("status_reasons") or []))
+    lines += _reference_lines(result)
+    notes = result.get("diagnostics", {}).get("notes", [])
+    for n in notes:
+        lines.append(f"  note: {n}")
+    if result.get("message") not in (None, "ok"):
+        lines.append(f"  message: {result['message']}")
+    return "\n".join(lines)
+
+
+def run_cli(args: Any) -> int:
+    """``rig estimate single-image SCENE [--method M] [--model MODEL] [--reference-spp N]
+    [--reference-iterations K] [--reference-seed S] [--shadows auto|on|off] [--out FILE] [--json]``.
+
+    Prints a table (or the JSON with ``--json``) and writes the JSON atomically to ``--out`` or
+    ``<scene>.estimate.json`` beside the scene file. Returns 0 on success, 1 if the estimate failed (the reason
+    is printed); input errors raise :class:`SceneFileError` (the CLI prints them and returns 2).
+    """
+    scene = load_scene(args.scene)
+    result = estimate_scene(scene, method=getattr(args, "method", None), model=getattr(args, "model", None),
+                            reference_spp=getattr(args, "reference_spp", None),
+                            reference_iterations=getattr(args, "reference_iterations", None),
+                            reference_seed=getattr(args, "reference_seed", None),
+                            shadows=getattr(args, "shadows", None))
+    out = getattr(args, "out", None)
+    out_path = Path(out) if out is not None else Path(args.scene).with_suffix(".estimate.json")
+    text = json.dumps(result, indent=2, allow_nan=False) + "\n"
+
+    def write(tmp: Path) -> None:
+        tmp.write_text(text, encoding="utf-8")
+
+    atomic_write(out_path, write)
+    if getattr(args, "json", False):
+        print(text, end="")
+        print(f"wrote {out_path}", file=sys.stderr)
+    else:
+        print(format_table(result))
+        print(f"wrote {out_path}")
+    if not result["success"]:
+        print(f"rig estimate single-image: estimation failed: {result['message']}", file=sys.stderr)
+        return 1
+    return 0
