@@ -31,6 +31,7 @@ CAMERA_MM = np.array([70.0, -40.0, 80.0])
 
 
 def sky(h: int, w: int, *, sun: bool) -> np.ndarray:
+    """Lat-long sky (EnvironmentMap convention): zenith gradient, a sun 40 deg from the zenith towards -x."""
     th, ph = np.meshgrid(np.pi * (np.arange(h) + 0.5) / h, 2 * np.pi * (np.arange(w) + 0.5) / w, indexing="ij")
     d = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], -1)
     s = np.array([-np.sin(0.7), 0.0, np.cos(0.7)])
@@ -40,6 +41,8 @@ def sky(h: int, w: int, *, sun: bool) -> np.ndarray:
 
 def dense_reference(eng: RayEngine, x: np.ndarray, n: np.ndarray, env: EnvironmentMap, sub: int,
                     sub_bright: int) -> np.ndarray:
+    """Brute force: every map pixel's visibility is the fraction of sub x sub shadow rays spread over it
+    (sub_bright x sub_bright for pixels above 4 x the mean radiance: the sun); below the horizon as unshadowed."""
     h, w = env.grid_shape()
     d, wt = env.directions_and_weights()
     cos = np.maximum(n @ d.T, 0.0)

@@ -3,16 +3,21 @@
 brute-force reference; convex meshes give exactly the unshadowed irradiance."""
 from __future__ import annotations
 
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 import trimesh
 
-from estimation.fresnel import fresnel_transmittance
 from estimation.rays import RayEngine
-from estimation.shadows import direction_visibility, environment_irradiance, is_convex_mesh
+from estimation.shadows import environment_irradiance, is_convex_mesh
 from estimation.single_image import (DirectionalLights, EnvironmentMap, PointLights, patch_irradiance,
                                      patches_from_mesh)
 from simulators.scene import wall_on_slab_mesh
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+from env_shadows import dense_reference, sky  # noqa: E402  (the benchmark's brute force, one copy)
 
 ETA = 1.3
 CAMERA_MM = np.array([70.0, -40.0, 80.0])
@@ -66,7 +71,7 @@ def test_point_light_shadow_is_zero_in_the_shadow_and_max_n_l_elsewhere() -> Non
 def test_convex_meshes_give_exactly_the_unshadowed_irradiance() -> None:
     ico = trimesh.creation.icosphere(subdivisions=3, radius=10.0)
     box = trimesh.creation.box(extents=(20.0, 10.0, 6.0))
-    env = EnvironmentMap(_sky(16, 32))
+    env = EnvironmentMap(sky(16, 32, sun=True))
     for mesh in (ico, box):
         auto = patches_from_mesh(mesh, CAMERA_MM)
         assert not auto.shadows and auto.occluder is None                    # proven convex: nothing is cast
@@ -79,38 +84,6 @@ def test_convex_meshes_give_exactly_the_unshadowed_irradiance() -> None:
             np.testing.assert_allclose(patch_irradiance(forced, lights, ETA), e_auto, rtol=1e-12, atol=0)
 
 
-def _sky(h: int = 32, w: int = 64, *, sun: bool = True) -> np.ndarray:
-    """Lat-long sky (EnvironmentMap convention): zenith gradient, a sun 40 deg from the zenith towards -x."""
-    th, ph = np.meshgrid(np.pi * (np.arange(h) + 0.5) / h, 2 * np.pi * (np.arange(w) + 0.5) / w, indexing="ij")
-    d = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], -1)
-    s = np.array([-np.sin(0.7), 0.0, np.cos(0.7)])
-    m = 0.2 + 0.8 * np.clip(d[..., 2], 0, 1) + (400.0 * np.exp((d @ s - 1.0) / 0.003) if sun else 0.0)
-    return m[..., None]
-
-
-def _dense_reference(eng: RayEngine, x: np.ndarray, n: np.ndarray, env: EnvironmentMap, sub: int,
-                     sub_bright: int) -> np.ndarray:
-    """Brute force: every map pixel's visibility is the fraction of sub x sub shadow rays spread over it
-    (sub_bright x sub_bright for pixels above 4 x the mean radiance: the sun)."""
-    h, w = env.grid_shape()
-    d, wt = env.directions_and_weights()
-    cos = np.maximum(n @ d.T, 0.0)
-    a = fresnel_transmittance(ETA, cos) * cos
-    rad = np.asarray(env.radiance, float).reshape(h * w, -1).sum(axis=1)
-    bright = np.flatnonzero(rad > 4.0 * np.sum(wt) / (4 * np.pi))
-    v = np.zeros(a.shape)
-    for s, pix in ((sub, np.arange(h * w)), (sub_bright, bright)):
-        vs = np.zeros((len(x), len(pix)))
-        for i in range(s):
-            for j in range(s):
-                th = np.pi * (pix // w + (i + 0.5) / s) / h
-                ph = 2 * np.pi * (pix % w + (j + 0.5) / s) / w
-                dd = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], -1)
-                vs += direction_visibility(eng, x, n, dd) | (n @ dd.T <= 0)  # below the horizon: as unshadowed
-        v[:, pix] = vs / s ** 2
-    return (a * v) @ wt
-
-
 @pytest.mark.parametrize("sun", [True, False])
 def test_environment_map_shadows_match_a_dense_brute_force_reference(sun: bool) -> None:
     mesh = wall_on_slab_mesh()
@@ -118,9 +91,9 @@ def test_environment_map_shadows_match_a_dense_brute_force_reference(sun: bool) 
     rng = np.random.default_rng(1)
     idx = rng.choice(len(p.areas_mm2), size=100, replace=False)
     x, n = p.centers_mm[idx], p.normals[idx]
-    env = EnvironmentMap(_sky(32, 64, sun=sun))
+    env = EnvironmentMap(sky(32, 64, sun=sun))
     eng = RayEngine(mesh.vertices, mesh.faces)
-    ref = _dense_reference(eng, x, n, env, sub=3, sub_bright=12)             # 32 x 64 x 9 directions + the sun
+    ref = dense_reference(eng, x, n, env, sub=3, sub_bright=12)             # 32 x 64 x 9 directions + the sun
     d, w = env.directions_and_weights()
     stats: dict = {}
     e = environment_irradiance(eng, x, n, d, w, env.grid_shape(), ETA, stats=stats)      # default 16 rows
