@@ -28,6 +28,7 @@ from .provenance import sha256_file
 from .session import Session, SessionError
 
 SATURATION = 0.98   # linear values at or above this fraction of white are masked
+DARK_LEVEL = 0.01   # full-on signal (fraction of white) below which a pixel, or a whole channel's median, is dark
 
 
 def _radiance_per_value(cam: dict[str, Any], exposure_s: float) -> float:
@@ -439,6 +440,9 @@ def run_gradients(frames: _Frames, manifest: dict[str, Any], surveys: dict[str, 
     estimation.gradients and estimation.diffusion)."""
     from estimation.diffusion import estimate_sphere, sphere_geometry
     from estimation.gradients import LedRig, albedo_scale_from_radiometry, compute_maps
+    from estimation.sphere_bias import widen_sphere_summary
+
+    from .folder_diffusion import dark_channels, mark_channels_unknown
 
     from .patterns import pattern_values
 
@@ -495,30 +499,44 @@ def run_gradients(frames: _Frames, manifest: dict[str, Any], surveys: dict[str, 
     maps = compute_maps(raw, albedo_scale=scale, leds=leds, eta=eta, view_dirs=view,
                         geometry_normals=np.where(hit[..., None], normals, 0.0), object_mask=hit,
                         surface_center_mm=center, surface_radius_mm=radius)
+    # the capture folder's two honesty rules (issue 16): a channel whose full-on signal over the object is
+    # within its noise is unknown as a whole (the per-pixel dark test alone keeps its noise-high pixels and
+    # reports a biased albedo), and the dipole's measured shortening bias widens the sphere intervals
+    notes: list[str] = []
+    dark, dark_info = dark_channels(raw, {k: exposure for k in raw}, hit, DARK_LEVEL)
+    dark = [d and c in requested_channels(manifest) for c, d in enumerate(dark)]   # unrequested: None anyway
+    if any(dark):
+        mark_channels_unknown(maps, dark)
+        notes.append("channel(s) " + ", ".join("RGB"[c] for c in range(3) if dark[c]) + " unknown: the median "
+                     f"full-on signal over the object is below max({DARK_LEVEL:g}, its pixel noise) "
+                     f"({dark_info['median_full_signal']} vs noise {dark_info['pixel_noise']})")
     t_maps = time.perf_counter() - t0
     est = estimate_sphere(maps, radius_mm=radius, true_normals=normals)
     summ = est.summary
+    summary = widen_sphere_summary(summ.as_dict(), radius, eta)
+    status = list(summary["status"])
     seed = None
     if cal is not None and cal.has("seed_k"):
         seed = _seed_beside(maps, est, normals, hit, cal, requested_channels(manifest))
         used["seed_k"] = f"calibrated (seed_k revision {cal.revision('seed_k')})"
     seconds = time.perf_counter() - t0
+    ch = requested_channels(manifest)
     out: dict[str, Any] = {
-        "estimator": "gradients", "success": any(st != "unknown" for st in summ.status),
-        "message": "ok" if any(st != "unknown" for st in summ.status) else "no usable pixels",
+        "estimator": "gradients", "success": any(status[c] != "unknown" for c in ch),
+        "message": "ok" if any(status[c] != "unknown" for c in ch) else "no usable pixels",
         "method": f"spherical gradients + normal-field blur on a sphere ({summ.method})",
-        "eta": eta, "seconds": seconds, "seconds_maps": t_maps, "status": list(summ.status),
+        "eta": eta, "seconds": seconds, "seconds_maps": t_maps, "status": status, "notes": notes,
+        "model_shortening_bias": summary.get("model_shortening_bias"),
         "n_pixels": summ.n_pixels.tolist(),
         "inputs": {"frames": [frames.session.frame(p, "cross").file for p in ["ambient", *names]],
                    "object_center_mm": center.tolist(), "radius_mm": radius,
                    "albedo_scale": scale.tolist(),
                    "radiometry": "design values of the camera and LED config (uncalibrated)"}}
-    ch = requested_channels(manifest)
     out["channels"] = ["RGB"[i] for i in ch]
-    for key, name in (("R_d", "R_d"), ("sigma_s_prime_per_mm", "sigma_s_prime_per_mm"),
-                      ("sigma_a_per_mm", "sigma_a_per_mm"), ("D_mm", "D_mm"), ("l_d_mm", "l_d_mm")):
-        if name in summ.params:
-            vals, intervals = np.asarray(summ.params[name].value), np.asarray(summ.params[name].interval)
+    for key in ("R_d", "sigma_s_prime_per_mm", "sigma_a_per_mm", "D_mm", "l_d_mm"):
+        if key in summary:
+            vals = np.array(summary[key]["value"], dtype=float)
+            intervals = np.array(summary[key]["interval"], dtype=float)
             out[key] = _expand_channels(vals[ch], ch)
             out[key + "_interval"] = _expand_channels(intervals[ch], ch)
     if cal is not None:

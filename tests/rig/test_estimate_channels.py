@@ -43,6 +43,15 @@ def test_unrequested_channels_are_none_and_left_out_of_the_table(green_session, 
     # 2.62 /mm; 5 %: a 32 px image has ~500 object pixels, the full-size demo gets 0.8 %)
     gr = json.loads((green_session.root / "estimates" / "gradients.json").read_text())
     assert abs(gr["sigma_s_prime_per_mm"][1] / 2.62 - 1) < 0.05
+    # the session path widens the sphere intervals by the dipole's measured shortening bias, as the capture
+    # folder does (estimation.sphere_bias): the record says so and the widened interval holds the truth
+    bias = gr["model_shortening_bias"]
+    assert bias is not None and bias["K"][1] > 1.0 and bias["K"][0] is None
+    lo, hi = gr["sigma_s_prime_per_mm_interval"][1]
+    plain_lo, plain_hi = bias["plain_intervals"]["sigma_s_prime_per_mm"][1]
+    assert lo <= plain_lo and hi >= plain_hi and (hi - lo) > (plain_hi - plain_lo)
+    assert lo <= 2.62 <= hi
+    assert gr["notes"] == []          # the green channel is lit: no channel is dark
 
 
 def test_report_lists_only_requested_channels(green_session, capsys):
