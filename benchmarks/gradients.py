@@ -248,6 +248,45 @@ def run_pipeline(folder: Path, parallel: bool, tile_rows: int, trace: bool, ram:
             "status": list(s.status)}
 
 
+def run_relief(folder: Path, parallel: bool, tile_rows: int, workers: int | None = None) -> dict[str, Any]:
+    """The relief branch of ``rig estimate gradients`` (a capture folder without a sphere: issue 16) on the same
+    frames, traced: compute_maps (memory-mapped maps), the per-window relief fit of the diffuse normals against
+    the known normals with its full-resolution window maps written as EXR
+    (:func:`rig.folder_diffusion.relief_estimate`, 64-px windows as the CLI's default), and the apparent albedo
+    map (:func:`rig.folder_diffusion.albedo_apparent`) written as EXR. Returns seconds and the tracemalloc peak."""
+    from estimation.camera import OrthographicCamera
+    from rig.folder_diffusion import RELIEF_WINDOW_PX, albedo_apparent, relief_estimate
+    from rig.imageio import write_exr
+
+    frames, normals = load_inputs(folder, parallel)
+    H, W = normals.shape[:2]
+    out = folder / "relief"
+    if out.exists():
+        shutil.rmtree(out)
+    out.mkdir()
+    cam = OrthographicCamera.looking_at(width_px=W, height_px=H, pixel_size_mm=RADIUS_MM / (0.55 * W),
+                                        direction=(0.0, 1.0, 0.0))
+    tracemalloc.start()
+    t0 = time.perf_counter()
+    rig = leds()
+    lut = build_response_lut(rig, eta=ETA, surface_radius_mm=RADIUS_MM)
+    maps = compute_maps(frames, albedo_scale=1.0 / VALUE_SCALE, lut=lut, eta=ETA, geometry_normals=normals,
+                        tile_rows=tile_rows, out_dir=out / "maps", workers=workers, consistency=False)
+    t_maps = time.perf_counter()
+    summary, files = relief_estimate(maps, normals, "benchmark normals", cam, None, out, "exr", RELIEF_WINDOW_PX)
+    t_relief = time.perf_counter()
+    alb = albedo_apparent(maps, normals, ETA, rig, np.array([0.0, -1.0, 0.0]), rows=tile_rows)
+    alb[np.asarray(maps.unknown)] = np.nan
+    write_exr(out / "albedo_apparent.exr", alb)
+    del alb
+    t_end = time.perf_counter()
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    return {"seconds": t_end - t0, "seconds_maps": t_maps - t0, "seconds_relief": t_relief - t_maps,
+            "seconds_albedo_apparent": t_end - t_relief, "tracemalloc_peak_bytes": peak,
+            "windows": summary["windows"], "window_status": summary["window_status"], "files": len(files) + 1}
+
+
 def worker(args: argparse.Namespace) -> int:
     folder = Path(args.dir)
     with AnonSampler() as mem:
@@ -255,6 +294,8 @@ def worker(args: argparse.Namespace) -> int:
             res = run_floor(folder, args.parallel, args.tile_rows)
         elif args.worker == "write":
             res = run_write(folder, args.write_bytes, (args.height, args.width), args.tile_rows)
+        elif args.worker == "relief":
+            res = run_relief(folder, args.parallel, args.tile_rows, workers=args.workers)
         elif args.worker == "ram":
             res = run_pipeline(folder, args.parallel, args.tile_rows, trace=False, ram=True, workers=args.workers)
         else:  # --quick: one pipeline run, traced (tracemalloc adds a little time to it)
@@ -298,7 +339,11 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--ram", action="store_true",
                     help="diagnostic: also run the pipeline with its maps in RAM (compute without map I/O; memory "
                          "then grows with the frame: ~4 frame sets)")
-    ap.add_argument("--worker", choices=["floor", "pipeline", "trace", "write", "ram"], help=argparse.SUPPRESS)
+    ap.add_argument("--relief", action="store_true",
+                    help="also run the relief branch of rig estimate gradients (no sphere: per-window relief fit, "
+                         "its window maps and the apparent albedo written as EXR) and report its memory (issue 16)")
+    ap.add_argument("--worker", choices=["floor", "pipeline", "trace", "write", "ram", "relief"],
+                    help=argparse.SUPPRESS)
     ap.add_argument("--dir", help=argparse.SUPPRESS)
     ap.add_argument("--height", type=int, default=0, help=argparse.SUPPRESS)
     ap.add_argument("--width", type=int, default=0, help=argparse.SUPPRESS)
@@ -326,6 +371,7 @@ def main(argv: list[str] | None = None) -> int:
         write = spawn("write", folder, args, write_bytes=pipe["bytes_written"])
         trace = spawn("trace", folder, args) if not args.quick else pipe
         ram = spawn("ram", folder, args) if args.ram else None
+        relief = spawn("relief", folder, args) if args.relief else None
     finally:
         if not args.keep:
             shutil.rmtree(folder, ignore_errors=True)
@@ -372,15 +418,28 @@ def main(argv: list[str] | None = None) -> int:
     mem_ok = max(tm, anon) <= 2 * frame_set
     print(f"\npeak process memory / frame set = {max(tm, anon) / frame_set:.3f} (target <= 2: "
           f"{'met' if mem_ok else 'NOT met'})")
+    relief_ok = None
+    if relief is not None:
+        r_tm, r_anon = relief["tracemalloc_peak_bytes"], relief["anon_peak_bytes"] - relief["anon_baseline_bytes"]
+        relief_ok = max(r_tm, r_anon) <= 2 * frame_set
+        print(f"\nrelief branch (no sphere; {relief['windows'][0]} x {relief['windows'][1]} windows of "
+              f"64 px, status per channel {relief['window_status']}; {relief['files']} EXR maps): "
+              f"{relief['seconds']:.1f} s (maps {relief['seconds_maps']:.1f}, relief fit + window maps "
+              f"{relief['seconds_relief']:.1f}, apparent albedo {relief['seconds_albedo_apparent']:.1f})")
+        print("| memory (relief branch) | GiB | / frame set |\n|---|---|---|")
+        print(f"| tracemalloc peak | {r_tm / 2**30:.3f} | {r_tm / frame_set:.3f} |")
+        print(f"| peak RssAnon above baseline (sampled) | {r_anon / 2**30:.3f} | {r_anon / frame_set:.3f} |")
+        print(f"relief branch peak process memory / frame set = {max(r_tm, r_anon) / frame_set:.3f} (target <= 2: "
+              f"{'met' if relief_ok else 'NOT met'})")
     print(f"\nresult check: known pixels (red) {pipe['known_fraction']:.3f}, D_mm {np.round(pipe['D_mm'], 5).tolist()}"
           f" (rel. err. vs marble {np.round(pipe['D_rel_err'], 4).tolist()}, status {pipe['status']})")
     result = {"width_px": W, "height_px": H, "megapixels": mpx, "frames": n_frames, "frame_set_bytes": frame_set,
               "tile_rows": args.tile_rows, "floor_read_mps": floor_mps, "write_floor_mps": mpx / write["seconds"],
               "pipeline_mps": pipe_mps, "io_floor_mps": io_mps, "per_pixel_mps": mpx / per_px, "ratio_pipeline_over_floor": ratio,
               "tracemalloc_peak_over_frame_set": tm / frame_set, "anon_peak_over_frame_set": anon / frame_set,
-              "targets_met": {"throughput": ratio >= 1 / 3, "memory": mem_ok},
+              "targets_met": {"throughput": ratio >= 1 / 3, "memory": mem_ok, "relief_memory": relief_ok},
               "runs": {"floor1": floor1, "pipeline": pipe, "floor2": floor2, "write": write, "trace": trace,
-                       "ram": ram}}
+                       "ram": ram, "relief": relief}}
     if args.json:
         args.json.write_text(json.dumps(result, indent=1, default=float))
     return 0

@@ -40,8 +40,8 @@ from scipy import stats
 
 from .dipole import hankel_transform, reduced_albedo_from_total_reflectance
 
-__all__ = ["RELIEF_PARAMS", "STATUS_CODES", "ReliefFit", "ReliefRegion", "fit_relief_windows", "summarize_relief",
-           "normal_noise_rad", "parameters_from_l_prime", "normals_from_height"]
+__all__ = ["RELIEF_PARAMS", "STATUS_CODES", "ReliefFit", "ReliefRegion", "SeedComparison", "compare_seed",
+           "fit_relief_windows", "summarize_relief", "normal_noise_rad", "parameters_from_l_prime", "normals_from_height"]
 
 Array = NDArray[np.float64]
 RELIEF_PARAMS: tuple[str, ...] = ("l_prime_mm", "l_d_mm", "D_mm", "sigma_s_prime_per_mm", "sigma_a_per_mm",
@@ -120,19 +120,80 @@ class ReliefFit:
         """A full-resolution (H, W, 3) map: each pixel takes the value (or interval ``"lo"`` / ``"hi"``, or the
         status code of :data:`STATUS_CODES` for ``name = "status"``) of the last window covering it; NaN where no
         window does."""
+        if name == "status":
+            v = np.vectorize(STATUS_CODES.__getitem__, otypes=[np.float32])(self.status)
+        elif which == "value":
+            v = self.values[name]
+        else:
+            v = self.intervals[name][..., 0 if which == "lo" else 1]
+        return self.window_map(v, shape)
+
+    def window_map(self, per_window: ArrayLike, shape: tuple[int, int]) -> NDArray[np.float32]:
+        """A full-resolution (H, W, 3) float32 map of per-window values (ny, nx, 3): each pixel takes the value of
+        the last window covering it; NaN where no window does."""
+        v = np.asarray(per_window, dtype=np.float32)
         out = np.full(shape + (3,), np.nan, np.float32)
         ny, nx = self.origins_px.shape[:2]
         for i in range(ny):
             for j in range(nx):
                 r0, c0 = self.origins_px[i, j]
-                if name == "status":
-                    v = np.array([STATUS_CODES[s] for s in self.status[i, j]], np.float32)
-                elif which == "value":
-                    v = self.values[name][i, j]
-                else:
-                    v = self.intervals[name][i, j, :, 0 if which == "lo" else 1]
-                out[r0:r0 + self.window_px, c0:c0 + self.window_px] = v
+                out[r0:r0 + self.window_px, c0:c0 + self.window_px] = v[i, j]
         return out
+
+
+@dataclass(frozen=True)
+class SeedComparison:
+    """The seed's D = k R_d / |n_z| against the relief fit, per window: ``ratio`` (ny, nx, 3) the window's median
+    seed D over its fitted D; ``disagree`` (ny, nx, 3) where the seed's median lies outside the fit's interval
+    (windows whose fit is not "unknown" and whose seed D is known); per channel the median ratio and the fraction
+    of compared windows that disagree (NaN without any)."""
+
+    ratio: Array
+    disagree: NDArray[np.bool_]
+    compared: NDArray[np.bool_]
+    median_ratio: Array
+    fraction_disagree: Array
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"median_ratio": self.median_ratio.tolist(), "fraction_disagree": self.fraction_disagree.tolist(),
+                "windows_compared": self.compared.sum(axis=(0, 1)).tolist(),
+                "rule": "disagree: the window's median seed D outside the relief fit's D interval"}
+
+
+def compare_seed(seed_D_mm: ArrayLike, fit: ReliefFit, *, min_known_fraction: float = 0.5) -> SeedComparison:
+    """Compare the seed's D map (H, W, 3; NaN where unknown) with the relief fit window by window (issue 16: "the
+    seed's D = k R_d / |n_z| with its calibrated k beside it, and where the two disagree, a map of that").
+
+    A window is compared in a channel when its fit is "ok" or "weak" and at least ``min_known_fraction`` of its
+    pixels have a finite seed D; the two disagree when the seed's median over the window lies outside the fit's
+    interval (which already carries the relief model's bias): k is an empirical length calibrated on one reference,
+    so a disagreement says the seed's proportionality does not hold here, not which of the two is right."""
+    sd = np.asarray(seed_D_mm)
+    ny, nx = fit.origins_px.shape[:2]
+    ratio = np.full((ny, nx, 3), np.nan)
+    disagree = np.zeros((ny, nx, 3), bool)
+    compared = np.zeros((ny, nx, 3), bool)
+    w = fit.window_px
+    for i in range(ny):
+        for j in range(nx):
+            r0, c0 = fit.origins_px[i, j]
+            block = np.asarray(sd[r0:r0 + w, c0:c0 + w], dtype=np.float64)
+            for c in range(3):
+                if fit.status[i, j, c] == "unknown":
+                    continue
+                v = block[..., c]
+                ok = np.isfinite(v) & (v > 0)
+                if ok.mean() < min_known_fraction:
+                    continue
+                med = float(np.median(v[ok]))
+                lo, hi = fit.intervals["D_mm"][i, j, c]
+                compared[i, j, c] = True
+                ratio[i, j, c] = med / fit.values["D_mm"][i, j, c]
+                disagree[i, j, c] = not (lo <= med <= hi)
+    n = compared.sum(axis=(0, 1))
+    med_ratio = np.array([np.median(ratio[..., c][compared[..., c]]) if n[c] else np.nan for c in range(3)])
+    frac = np.array([disagree[..., c].sum() / n[c] if n[c] else np.nan for c in range(3)])
+    return SeedComparison(ratio, disagree, compared, med_ratio, frac)
 
 
 @dataclass(frozen=True)

@@ -947,6 +947,9 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
     from .folder_diffusion import apply_dark_channels, relief_branch, write_albedo_apparent
     apply_dark_channels(cap, maps, obj, exposure, notes)
     known = ~maps.unknown
+    seed_est = None
+    if cap.seed is not None:
+        seed_est = diffusion_seed(maps, cap.seed.k_mm, cap.seed.provenance, true_normals=normals)
     diffusion = None
     diff_summary: dict[str, Any]
     relief_files: dict[str, Path] = {}
@@ -968,17 +971,17 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
             notes.append("diffusion_reference_corrected: the sphere summary corrected by Monte Carlo reference "
                          "renders; the per-pixel maps are uncorrected")
     elif cap.relief is not None or maps.specular_normals is not None:
-        diff_summary, relief_files = relief_branch(cap, maps, obj, Path(out_dir), fmt, relief_window_px, notes)
+        diff_summary, relief_files = relief_branch(cap, maps, obj, Path(out_dir), fmt, relief_window_px, notes,
+                                                   seed_D_mm=None if seed_est is None else seed_est.D_mm)
     else:
         diff_summary = {"estimator": "grounded", "status": ["unknown"] * 3,
                         "reason": "no geometry ([object] shape = \"sphere\" with center_mm, radius_mm): a region "
                                   "without curvature information carries no information about a length, so D, "
                                   "sigma_s' and sigma_a are unknown (docs/gradients.md sec. 5)"}
         notes.append("diffusion unknown: no object geometry in capture.toml and no specular normals")
-    seed_est = None
     seed_summary = None
-    if cap.seed is not None:
-        seed_est = diffusion_seed(maps, cap.seed.k_mm, cap.seed.provenance, true_normals=normals)
+    if seed_est is not None:
+        assert cap.seed is not None
         seed_summary = {"estimator": "seed D = k R_d/|n_z| (Zhu et al.)", "k_mm": cap.seed.k_mm,
                         "D_mm_median": _channel_medians(seed_est.D_mm, ~seed_est.unknown),
                         "provenance": cap.seed.provenance,
@@ -988,6 +991,8 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
             cmp = compare_estimates(seed_est, diffusion, region=obj)
             seed_summary["versus_grounded"] = {"median_ratio": cmp.median_ratio,
                                                "fraction_disagree": cmp.fraction_disagree, "rel_tol": cmp.rel_tol}
+        elif "versus_seed" in diff_summary:
+            seed_summary["versus_relief"] = diff_summary["versus_seed"]
     alb_app, app_write = write_albedo_apparent(cap, maps, geo_normals, leds, n_ref, Path(out_dir), fmt)
     summary: dict[str, Any] = {
         "capture": str(cap.folder), "name": cap.name, "out_dir": str(Path(out_dir)), "format": fmt,

@@ -24,7 +24,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from estimation.camera import OrthographicCamera, PinholeCamera
-from estimation.relief import RELIEF_PARAMS, fit_relief_windows, normals_from_height, summarize_relief
+from estimation.relief import (RELIEF_PARAMS, compare_seed, fit_relief_windows, normals_from_height,
+                              summarize_relief)
 
 __all__ = ["ReliefGeometry", "read_relief_geometry", "pixel_footprint_mm", "relief_estimate", "RELIEF_WINDOW_PX"]
 
@@ -79,9 +80,13 @@ def pixel_footprint_mm(camera: PinholeCamera | OrthographicCamera) -> float:
 
 
 def relief_estimate(maps: Any, true_normals: NDArray[np.float64], source: str, camera: Any,
-                    region: NDArray[np.bool_] | None, out_dir: Path, fmt: str, window_px: int
-                    ) -> tuple[dict[str, Any], dict[str, Path]]:
-    """The per-window relief fit and its region summary; writes the window maps. Returns (summary, files)."""
+                    region: NDArray[np.bool_] | None, out_dir: Path, fmt: str, window_px: int,
+                    seed_D_mm: Any = None) -> tuple[dict[str, Any], dict[str, Path]]:
+    """The per-window relief fit and its region summary; writes the window maps. With the seed's D map
+    (``seed_D_mm``, (H, W, 3)) also the seed beside the fit (:func:`estimation.relief.compare_seed`): the maps
+    ``relief_D_seed_ratio`` (window median seed D / fitted D) and ``relief_D_seed_disagree`` (1 where the seed lies
+    outside the fit's interval, 0 where it agrees, NaN where not compared) and ``versus_seed`` in the summary.
+    Returns (summary, files)."""
     from .imageio import write_exr, write_float_tiff
 
     H, W = maps.shape
@@ -109,6 +114,13 @@ def relief_estimate(maps: Any, true_normals: NDArray[np.float64], source: str, c
             key = f"relief_{name}{suffix}"
             files[key] = writer(out / f"{key}{ext}", fit.pixel_map(name, (H, W), which))
     files["relief_status"] = writer(out / f"relief_status{ext}", fit.pixel_map("status", (H, W)))
+    versus_seed = None
+    if seed_D_mm is not None:
+        cmp = compare_seed(seed_D_mm, fit)
+        files["relief_D_seed_ratio"] = writer(out / f"relief_D_seed_ratio{ext}", fit.window_map(cmp.ratio, (H, W)))
+        flag = np.where(cmp.compared, cmp.disagree.astype(np.float32), np.nan)
+        files["relief_D_seed_disagree"] = writer(out / f"relief_D_seed_disagree{ext}", fit.window_map(flag, (H, W)))
+        versus_seed = cmp.as_dict()
     counts = {s: [int((fit.status[..., c] == s).sum()) for c in range(3)] for s in ("ok", "weak", "unknown")}
     summary = {"estimator": "relief blur (estimation.relief; docs/gradients.md sec. 9)",
                "true_normals": source, "pixel_mm": px, "window_px": fit.window_px,
@@ -118,6 +130,8 @@ def relief_estimate(maps: Any, true_normals: NDArray[np.float64], source: str, c
                "relief_noise_rad_median": float(np.nanmedian(fit.relief_noise_rad))
                if np.isfinite(fit.relief_noise_rad).any() else None,
                **reg.as_dict(), "fit": fit.provenance}
+    if versus_seed is not None:
+        summary["versus_seed"] = versus_seed
     return summary, files
 
 
@@ -244,8 +258,9 @@ def apply_dark_channels(cap: Any, maps: Any, obj: Any, exposure: Any, notes: lis
 
 
 def relief_branch(cap: Any, maps: Any, obj: Any, out_dir: Path, fmt: str, window_px: int | None,
-                  notes: list[str]) -> tuple[dict[str, Any], dict[str, Path]]:
-    """The relief estimate with the folder's relief geometry, else the specular normals (shape unknown)."""
+                  notes: list[str], seed_D_mm: Any = None) -> tuple[dict[str, Any], dict[str, Path]]:
+    """The relief estimate with the folder's relief geometry, else the specular normals (shape unknown); with the
+    seed's D map, the seed beside it (:func:`relief_estimate`)."""
     if cap.relief is not None:
         try:
             rel = cap.relief.file.relative_to(cap.folder)
@@ -254,7 +269,8 @@ def relief_branch(cap: Any, maps: Any, obj: Any, out_dir: Path, fmt: str, window
         tn, source = cap.relief.normals, f"{cap.relief.source} {rel}"
     else:
         tn, source = np.asarray(maps.specular_normals, dtype=np.float64), "specular normals (shape unknown)"
-    out = relief_estimate(maps, tn, source, cap.camera, obj, out_dir, fmt, window_px or RELIEF_WINDOW_PX)
+    out = relief_estimate(maps, tn, source, cap.camera, obj, out_dir, fmt, window_px or RELIEF_WINDOW_PX,
+                          seed_D_mm=seed_D_mm)
     notes.append("diffusion from the relief blur of the diffuse normals against the " + source
                  + " (docs/gradients.md sec. 9)")
     return out

@@ -71,6 +71,31 @@ def test_relief_slab_unknown_shape_uses_the_specular_normals(tmp_path, capsys) -
     assert np.all((ratio > 0.88) & (ratio < 0.95)), ratio              # ~0.983 x 0.939 head-on at eta 1.3
 
 
+def test_the_seed_beside_the_relief_fit_with_a_disagreement_map(tmp_path, capsys) -> None:
+    """Issue 16: the seed's D = k R_d / |n_z| beside the relief fit, and a map of where they disagree. A k that
+    reproduces the fitted D agrees in the lit channels; the same k x 20 disagrees in every compared window."""
+    s0 = _run(_copy(tmp_path / "a"), capsys)
+    d0 = s0["diffusion"]
+    k_fit = np.asarray(d0["D_mm"]["value"]) / np.asarray(s0["maps"]["R_d_median"])
+    for scale, agree in ((1.0, True), (20.0, False)):
+        k = ", ".join(f"{x:.6g}" for x in k_fit * scale)
+        s = _run(_copy(tmp_path / f"k{scale:g}", f"[seed]\nk_mm = [{k}]\nprovenance = \"test: k from the fit\"\n"),
+                 capsys)
+        v = s["seed"]["versus_relief"]
+        assert min(v["windows_compared"]) > 0
+        frac, ratio = np.asarray(v["fraction_disagree"]), np.asarray(v["median_ratio"])
+        if agree:
+            assert np.all(frac[1:] < 0.5) and np.all(np.abs(ratio[1:] - 1) < 0.3), v
+        else:       # disagree wherever 20 x the fitted D lies outside the (wider) region interval of the fit
+            lo, hi = np.asarray(d0["D_mm"]["interval"], dtype=float).T
+            outside = 20 * np.asarray(d0["D_mm"]["value"]) > hi
+            assert outside.any() and np.all(frac[outside] == 1.0) and np.all(ratio > 5), (v, hi)
+        flag, _ = read_image(Path(s["files"]["relief_D_seed_disagree"]))
+        assert set(np.unique(flag[np.isfinite(flag)])) <= {0.0, 1.0}
+        assert np.nanmean(flag) == pytest.approx(float(np.mean(frac)), abs=0.35)
+        assert Path(s["files"]["relief_D_seed_ratio"]).is_file()
+
+
 def test_relief_slab_with_a_normals_file_and_a_smaller_window(tmp_path, capsys) -> None:
     folder = _copy(tmp_path, '[object]\nshape = "relief"\nnormals_file = "true_normals.npy"\n')
     s = _run(folder, capsys, "--relief-window-px", "32")
