@@ -308,7 +308,10 @@ def fit_relief_windows(diffuse_normals: ArrayLike, true_normals: ArrayLike, albe
     weight inside ``margin_px`` (default window/4) of the edge: a diffuse normal depends on the relief within a few
     l_d, which the window must contain (margin >~ 2 l_d). See the module docstring for the interval and status.
     """
-    Dn = np.asarray(diffuse_normals)          # kept in their dtype (float32 maps): each window is cast to float64
+    # kept as given (float32 maps, memory maps or derived maps that compute a slice on access): each window is
+    # read once and cast to float64, so a 24 MP capture never holds a full (H, W, 3, 3) copy
+    Dn = diffuse_normals if hasattr(diffuse_normals, "__getitem__") and hasattr(diffuse_normals, "shape") \
+        else np.asarray(diffuse_normals)
     Tn = np.asarray(true_normals)
     alb = np.asarray(albedo)
     H, W = Tn.shape[:2]
@@ -355,8 +358,9 @@ def fit_relief_windows(diffuse_normals: ArrayLike, true_normals: ArrayLike, albe
             rel_rms = float(np.sqrt(max(tot_var - 2 * sig_n ** 2, 0.0)))
             rms[i, j], noise[i, j] = rel_rms, sig_n
             relief_ok = rel_rms >= max(min_relief_snr * np.sqrt(2.0) * sig_n, min_relief_rad)
+            dn_win = np.asarray(Dn[sl], dtype=np.float64)
             for c in range(3):
-                d = Dn[sl][..., c, :].astype(np.float64)
+                d = dn_win[..., c, :]
                 a_w = alb[sl][..., c].astype(np.float64)
                 ok = ok_t & v[sl][..., c] & np.isfinite(d).all(-1) & np.isfinite(a_w)
                 # unknown defaults: the whole searched range as interval

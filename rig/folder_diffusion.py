@@ -102,8 +102,8 @@ def relief_estimate(maps: Any, true_normals: NDArray[np.float64], source: str, c
     tn = np.where(np.isfinite(true_normals).all(-1, keepdims=True), true_normals, np.nan)
     if region is not None:
         tn = np.where(np.asarray(region, dtype=bool)[..., None], tn, np.nan)
-    fit = fit_relief_windows(np.asarray(maps.diffuse_normals), tn, np.asarray(maps.albedo), px, float(maps.eta),
-                             window_px=window_px, valid=valid)   # float32 maps: cast per window
+    fit = fit_relief_windows(maps.diffuse_normals, tn, maps.albedo, px, float(maps.eta),
+                             window_px=window_px, valid=valid)   # maps read and cast per window
     reg = summarize_relief(fit, region)
     files: dict[str, Path] = {}
     out = Path(out_dir)
