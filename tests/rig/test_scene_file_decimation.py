@@ -4,7 +4,6 @@ from a decimated copy, visibility, the pixel map and cast shadows on the full me
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
 from typing import Any
 
@@ -87,3 +86,96 @@ def _estimate(capsys: pytest.CaptureFixture[str], scene: Path, *extra: str) -> d
     out, _ = capsys.readouterr()
     assert code == 0
     return json.loads(out)
+
+
+def test_decimated_estimate_recovers_sigma_s_and_matches_the_full_mesh(scene_dir: Path, capsys) -> None:
+    full = _estimate(capsys, scene_dir / "full.toml")                      # patches = auto: one per face
+    dec = _estimate(capsys, scene_dir / "full.toml", "--patches", str(PATCHES))    # the flag beats the file
+    assert load_scene(scene_dir / "decimated.toml").estimation.patches == PATCHES  # (the key: as the flag)
+    d_full, d_dec = full["observations"]["patch_decimation"], dec["observations"]["patch_decimation"]
+    assert d_full["decimated"] is False and "one patch per face" in d_full["reason"]
+    assert full["observations"]["patches"] == 5120
+    assert d_dec["decimated"] is True and d_dec["mesh_faces"] == 5120
+    assert abs(dec["observations"]["patches"] - PATCHES) <= 0.02 * PATCHES
+    assert dec["observations"]["cast_shadows"] is True and full["observations"]["cast_shadows"] is True
+    assert d_dec["not_snapped"] <= 0.01 * PATCHES and d_dec["deviation_mm_p99"] < 0.05 * RADIUS_MM
+    assert dec["observations"]["observed_per_channel"][0] >= 100
+    assert "decimation" in dec["seconds_by_stage"] and "fit" in dec["seconds_by_stage"]
+    ssp = {k: r["parameters"]["sigma_s_prime_per_mm"]["value"][0] for k, r in (("full", full), ("dec", dec))}
+    with capsys.disabled():
+        print(f"\ncrater, sigma_s' error: full mesh ({full['observations']['patches']} patches) "
+              f"{ssp['full'] / SSP - 1:+.1%}, decimated ({dec['observations']['patches']}) {ssp['dec'] / SSP - 1:+.1%}")
+    assert abs(ssp["full"] / SSP - 1) < 0.03
+    assert abs(ssp["dec"] / SSP - 1) < 0.05                   # stated tolerance of the decimated estimate
+    assert abs(ssp["dec"] / ssp["full"] - 1) < 0.03           # and its distance from the undecimated one
+
+
+@pytest.mark.parametrize("name, words", [("zero", "an integer >= 10"), ("negative", "an integer >= 10"),
+                                         ("many", "at most the mesh's face count (5120 faces)"),
+                                         ("text", '"auto" or an integer'), ("typo", "a known key")])
+def test_bad_patches_names_file_and_field(scene_dir: Path, name: str, words: str) -> None:
+    with pytest.raises(SceneFileError) as ei:
+        load_scene(scene_dir / f"bad_{name}.toml")
+    msg = str(ei.value)
+    key = "estimation.patchs" if name == "typo" else "estimation.patches"
+    assert f"bad_{name}.toml" in msg and f"'{key}'" in msg and words in msg, msg
+    assert len(msg.splitlines()) == 1
+
+
+def test_bad_patches_flag_names_the_field(scene_dir: Path, capsys) -> None:
+    code = rig_main(["estimate", "single-image", str(scene_dir / "full.toml"), "--patches", "0",
+                     "--out", str(scene_dir / "flag.json")])
+    err = capsys.readouterr().err
+    assert code == 2 and "full.toml" in err and "estimation.patches (--patches)" in err and ">= 10" in err
+    assert rig_main(["estimate", "single-image", str(scene_dir / "full.toml"), "--patches", "lots"]) == 2
+    assert "expected 'auto' or an integer" in capsys.readouterr().err
+
+
+def test_auto_patch_budget() -> None:
+    target, why = resolve_patches("auto", 102_400, 20_000)
+    assert target == AUTO_PATCHES and "decimated to 10000" in why
+    assert resolve_patches("auto", 5_000, 20_000)[0] is None
+    assert resolve_patches("auto", 30_000, 4_000)[0] == 4_000          # never above max_patches
+    assert resolve_patches(5_000, 5_000, 20_000)[0] is None            # as many patches as faces: the mesh itself
+
+
+def test_decimated_patches_on_the_full_surface_are_not_self_shadowed() -> None:
+    """A decimated sphere's faces are chords, inside the full sphere: shadow rays from their own centres are all
+    blocked by the full surface. Moved onto it (snap_to_surface), no patch facing the light is shadowed."""
+    cam = PinholeCamera.looking_at(width_px=64, height_px=48, fx_px=80.0, position_mm=[0.0, -80.0, 30.0],
+                                   target_mm=[0.0, 0.0, 0.0])
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=RADIUS_MM)
+    dec = patches_from_decimated(sphere, decimate_mesh(sphere, 512), cam, shadows=True)
+    p = dec.patches
+    light = np.array([[60.0, -40.0, 50.0]])
+    to_light = light[0] - p.centers_mm
+    cos_l = np.einsum("kc,kc->k", to_light / np.linalg.norm(to_light, axis=1, keepdims=True), p.normals)
+    lit = cos_l > 0.1
+    vis = point_light_visibility(p.occluder, p.centers_mm, p.normals, light, own_face=p.face_index)[:, 0]
+    chord_centres = np.asarray(decimate_mesh(sphere, 512).triangles_center)
+    naive = point_light_visibility(p.occluder, chord_centres, p.normals, light)[:, 0]
+    assert dec.snapped.all() and lit.sum() > 100
+    assert np.sum(~vis & lit) == 0
+    assert np.mean(~naive[lit]) > 0.5                # what the snapping prevents
+    assert dec.deviation_mm.max() < 0.02 * RADIUS_MM
+
+
+def test_decimated_shadows_agree_with_the_full_mesh() -> None:
+    """On the crater mesh the point light's shadow at each decimated patch centre equals the full mesh's own
+    shadow at the face under it (patches whose light is not grazing)."""
+    cam = PinholeCamera.looking_at(width_px=64, height_px=48, fx_px=80.0, position_mm=CAM["position_mm"],
+                                   target_mm=CAM["look_at_mm"])
+    mesh = crater_mesh()
+    dec = patches_from_decimated(mesh, decimate_mesh(mesh, PATCHES), cam, shadows=True)
+    p = dec.patches
+    light = np.array([LIGHT_MM])
+    vis = point_light_visibility(p.occluder, p.centers_mm, p.normals, light, own_face=p.face_index)[:, 0]
+    f = np.maximum(p.face_index, 0)
+    fn = np.asarray(mesh.face_normals)[f]
+    full = point_light_visibility(p.occluder, np.asarray(mesh.triangles_center)[f], fn, light, own_face=f)[:, 0]
+    to_light = light[0] - p.centers_mm
+    to_light /= np.linalg.norm(to_light, axis=1, keepdims=True)
+    clear = (np.abs(np.einsum("kc,kc->k", to_light, p.normals)) > 0.15) & dec.snapped
+    shadowed = ~full & clear
+    assert shadowed.sum() > 20                                        # the crater does cast a shadow
+    assert np.mean(vis[clear] == full[clear]) > 0.97
