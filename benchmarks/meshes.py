@@ -20,13 +20,18 @@ into the body: non-convex, with a hole), ~100k faces (``--quick``: ~26k). A pinh
 3. **Cast shadows** (issue 17 part 2): shadow rays of a point light from 10k face centres of the full mesh
    against all its faces (``estimation.shadows.point_light_visibility``), and the environment-map shadows of a
    sky with a sun (64 x 128 map, default 16 cell rows) on the ~10k patches (``environment_irradiance``).
-4. **End to end**: ``rig estimate single-image`` (``rig.scene_file.load_scene`` + ``rig.scene_estimate.estimate_scene``, model
-   ``mc-table``, method direct) on a scene file of the ~10k-face tessellation (10,240 patches; the scene file
-   holds one patch per face — patch decimation of the 100k-face mesh is not built), lit by a point light, its
-   image the estimator's own forward model with shadows painted per face through the ray-cast pixel map; with
-   shadows on (default for this non-convex mesh) beside shadows off, and the geometry stages (patches,
-   occlusion, pixel map, shadows) timed separately. The figure for the 100k-face mesh at 10k patches is that
-   run plus the difference of the full mesh's geometry stages (sections 2-3), printed as an estimate.
+4. **End to end**: ``rig estimate single-image`` (``rig.scene_file.load_scene`` + ``rig.scene_estimate.estimate_scene``,
+   model ``mc-table``, method direct, shadows auto = on) on a scene file of the full ~100k-face mesh itself with
+   ``[estimation] patches = 10000`` (``--quick``: the 26k-face mesh at 2,500), lit by a point light; its image is
+   the estimator's forward model with shadows on one patch per face of the full mesh (not timed), painted per
+   face through the ray-cast pixel map. Each run loads the scene, decimates the mesh, builds the engine and fits
+   afresh (nothing cached across runs; the direct system's in-memory cache is cleared); the stage split comes from
+   the result's ``seconds_by_stage``: load, decimation, patch map (full faces -> patches), engine build,
+   convexity test, snapping the centres onto the full surface, occlusion, pixel map (with the pixels' surface
+   points), sampling (noise model, gathering each patch's pixels, exclusion counts), irradiance with shadow rays,
+   fit. Visibility + shadows = engine build + convexity + snap + occlusion + pixel map + irradiance with shadows.
+   Beside it the old path: one patch per face (refused above ``max_patches`` before decimation) with brute-force
+   visibility (section 2's extrapolation) plus this run's load and fit.
 
 Timings are wall-clock minima over ``--repeats`` runs; the load average is printed (on a shared machine the
 absolute times are inflated; ratios within one run remain meaningful). Embree runs on its own thread pool (all

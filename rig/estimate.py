@@ -274,24 +274,29 @@ def _object_center(manifest: dict[str, Any], surveys: dict[str, Any]) -> np.ndar
     return np.asarray(surveys[target]["xyz_mm"], float) - np.asarray(obj["target_offset_mm"], float)
 
 
-def pixel_faces(mesh: Any, camera: Any, *, engine: Any = None) -> np.ndarray:
+def pixel_faces(mesh: Any, camera: Any, *, engine: Any = None, points: np.ndarray | None = None) -> np.ndarray:
     """Index of the mesh face seen by each pixel (H, W) int32, -1 where the pixel's ray misses the mesh.
 
     Exact for any mesh (concave, several bodies, self-occluding): one ray per pixel centre from the camera
     (``camera.pixel_rays()``: the pinhole, or a scene file's distorted camera through its undistorted pixel
     centres), first hit by :class:`estimation.rays.RayEngine` (Embree; built here from ``mesh.vertices`` and
     ``mesh.faces`` unless an ``engine`` of the same mesh is given). A first hit on the back of a face (an open
-    mesh seen from behind, or from inside) is -1 too: no outer surface is observed there.
+    mesh seen from behind, or from inside) is -1 too: no outer surface is observed there. ``points``: an (H, W, 3)
+    float array that receives the surface point each pixel sees (NaN where -1), from the same rays.
     """
     from estimation.rays import RayEngine
 
     if engine is None:
         engine = RayEngine(np.asarray(mesh.vertices, float), np.asarray(mesh.faces))
     origins, dirs = camera.pixel_rays()
-    face, _ = engine.first_hit(origins, dirs)
+    face, dist = engine.first_hit(origins, dirs)
     hit = face >= 0
     back = np.einsum("ij,ij->i", engine.face_normals[face[hit]], dirs[hit]) >= 0
     face[hit] = np.where(back, -1, face[hit])
+    if points is not None:
+        on = face >= 0
+        points[...] = np.nan
+        points[on] = origins[on] + dist[on][:, None] * dirs[on]
     return face.astype(np.int32)
 
 

@@ -83,6 +83,7 @@ class _SceneGeometry:
     pixel_face: NDArray[np.int32]
     decimated: Any
     reason: str
+    pixel_points_mm: Array | None = None     # (H, W, 3) the surface point of each pixel (decimated patches only)
 
     def summary(self) -> dict[str, Any]:
         out: dict[str, Any] = {"decimated": self.decimated is not None, "reason": self.reason}
@@ -126,9 +127,10 @@ def _scene_patches(scene: Scene, budget: Any, cos_min: float, shadows: bool | st
     dec = patches_from_decimated(mesh, patch_mesh, cam, cos_min=cos_min, occlusion=est.occlusion, shadows=shadows)
     stage.update(dec.seconds)
     t = time.perf_counter()
-    faces = pixel_faces(mesh, cam, engine=dec.engine)
+    points = np.empty((cam.height_px, cam.width_px, 3))
+    faces = pixel_faces(mesh, cam, engine=dec.engine, points=points)
     stage["pixel_map"] = time.perf_counter() - t
-    return _SceneGeometry(dec.patches, faces, dec, reason)
+    return _SceneGeometry(dec.patches, faces, dec, reason, points)
 
 
 # ---------------------------------------------------------------------------------------------- estimation
@@ -222,7 +224,7 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
     (:mod:`estimation.single_image.decimation`). ``seconds_by_stage`` in the result times the stages.
     """
     from estimation.single_image import SingleImageResult, estimate_single_image
-    from estimation.single_image.decimation import PATCH_MIN_PIXELS, gather_patch_pixels, pixel_surface_points
+    from estimation.single_image.decimation import PATCH_MIN_PIXELS, gather_patch_pixels
 
     from .estimate import sample_at_points
 
@@ -267,11 +269,9 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
     if dec is None:
         obs, sigma = sample_at_points(img, var, valid, cam, patches.centers_mm, window_px=est.window_px)
     else:   # from the pixels of the full faces that belong to each patch
-        t_pts = time.perf_counter()
-        points = pixel_surface_points(cam, faces, dec.engine)
-        stage["pixel_points"] = time.perf_counter() - t_pts
-        obs, sigma, _ = gather_patch_pixels(img, var, valid, faces, dec.face_to_patch, points, patches.centers_mm,
-                                            patches.normals)
+        assert geo.pixel_points_mm is not None
+        obs, sigma, _ = gather_patch_pixels(img, var, valid, faces, dec.face_to_patch, geo.pixel_points_mm,
+                                            patches.centers_mm, patches.normals)
     obs[~patches.visible] = np.nan
 
     # what excluded the visible patches (a patch can be counted under several reasons)

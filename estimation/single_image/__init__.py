@@ -90,7 +90,7 @@ from .far_field import (EXACT_PAIR_BUDGET, EXACT_PAIR_BUDGET_BINNED, FAR_FIELD_M
                         quantization_weights)
 from .fit import (_LOG_SA_MAX, _LOG_SSP_BOUNDS, _box_qp_2d, _fit_channel, _golden_batch, _lm_multistart,
                   _Problem, _reduce)
-from .decimation import (DecimatedPatches, decimate_mesh, gather_patch_pixels, pixel_surface_points,
+from .decimation import (DecimatedPatches, decimate_mesh, gather_patch_pixels,
                          patches_from_decimated)
 from .geometry import (DirectionalLights, EnvironmentMap, Lights, Patches, PointLights, patch_irradiance,
                        patches_from_mesh, sample_image_at_patches)
@@ -115,7 +115,6 @@ __all__ = [
     "decimate_mesh",
     "patches_from_decimated",
     "gather_patch_pixels",
-    "pixel_surface_points",
     "sample_image_at_patches",
     "patch_irradiance",
     "quantization_weights",

@@ -23,10 +23,12 @@ grows with the patches (observed x sources), a scanned mesh's faces do not have 
    through that face. A patch whose ray finds no such face (a sharp fold; counted as ``not_snapped``) keeps its
    decimated centre moved out by its deviation (``c + deviation n``: above the full surface within the patch).
 4. **Observations** are gathered from the pixels that belong to each patch (:func:`gather_patch_pixels`): a
-   least-squares plane in image coordinates through the patch's valid pixels, evaluated at the projected patch
-   centre (the pixels' centroid is not the centre: a plain mean would be biased by the radiance gradient across
-   the patch), with the standard error of that value from the per-pixel variances; the mean where the pixels are
-   too few or too collinear for a plane.
+   least-squares plane through the values of the patch's valid pixels over their surface points' coordinates in
+   the patch's tangent plane, evaluated at the patch centre (the pixels' centroid is not the centre: a plain mean
+   would be biased by the radiance gradient across the patch; tangent-plane rather than image coordinates, which
+   are foreshortened non-linearly near grazing views), with the standard error of that value from the per-pixel
+   variances; the mean where the pixels are too few (< :data:`PATCH_PLANE_PIXELS`) or too collinear for a plane,
+   nothing below :data:`PATCH_MIN_PIXELS`.
 """
 from __future__ import annotations
 
@@ -108,12 +110,18 @@ def assign_faces(full_centers_mm: Array, full_normals: Array, patch_centers_mm: 
     faces the same side as the face's (n_f . n_k > 0), else the nearest."""
     from scipy.spatial import cKDTree
 
+    tree = cKDTree(patch_centers_mm)
+    _, near = tree.query(full_centers_mm, k=1, workers=-1)
+    out = np.asarray(near, dtype=np.intp)
+    redo = np.flatnonzero(np.einsum("fc,fc->f", full_normals, patch_normals[out]) <= 0.0)
     k = int(min(max(1, candidates), len(patch_centers_mm)))
-    _, idx = cKDTree(patch_centers_mm).query(full_centers_mm, k=k, workers=-1)
-    idx = np.asarray(idx, dtype=np.intp).reshape(len(full_centers_mm), k)
-    same = np.einsum("fc,fkc->fk", full_normals, patch_normals[idx]) > 0.0
-    first = np.where(same.any(axis=1), np.argmax(same, axis=1), 0)
-    return idx[np.arange(len(idx)), first]
+    if len(redo) and k > 1:       # the nearest faces the other way (a thin part): the nearest that faces this way
+        _, idx = tree.query(full_centers_mm[redo], k=k, workers=-1)
+        idx = np.asarray(idx, dtype=np.intp).reshape(len(redo), k)
+        same = np.einsum("fc,fkc->fk", full_normals[redo], patch_normals[idx]) > 0.0
+        first = np.where(same.any(axis=1), np.argmax(same, axis=1), 0)
+        out[redo] = idx[np.arange(len(idx)), first]
+    return out
 
 
 def patch_deviation_mm(full_centers_mm: Array, face_to_patch: NDArray[np.intp], patch_centers_mm: Array,
@@ -191,26 +199,13 @@ def patches_from_decimated(mesh: Any, patch_mesh: Any, camera: Any, *,
     return DecimatedPatches(p, f2p, engine, dev, snapped, int(len(mesh.faces)), sec)
 
 
-def pixel_surface_points(camera: Any, pixel_face: NDArray[np.integer], engine: RayEngine) -> Array:
-    """The surface point seen by each pixel (H, W, 3) (NaN for background): the pixel's ray
-    (``camera.pixel_rays()``) met with the plane of the face ``pixel_face`` gives (the ray-cast map's face)."""
-    o, d = camera.pixel_rays()
-    out = np.full(o.shape, np.nan)
-    on = np.asarray(pixel_face) >= 0
-    f = np.asarray(pixel_face)[on]
-    n = engine.face_normals[f]
-    v0 = engine.vertices[engine.faces[f, 0]]
-    t = np.einsum("ij,ij->i", v0 - o[on], n) / np.einsum("ij,ij->i", d[on], n)
-    out[on] = o[on] + t[:, None] * d[on]
-    return out
-
-
 def gather_patch_pixels(image: Array, variance: Array, valid: NDArray[np.bool_], pixel_face: NDArray[np.integer],
                         face_to_patch: NDArray[np.intp], pixel_points_mm: Array, centers_mm: Array, normals: Array
                         ) -> tuple[Array, Array, NDArray[np.intp]]:
     """Radiance of each patch from its pixels (module docstring, 4): ``image``, ``variance``, ``valid`` (H, W, C),
     ``pixel_face`` (H, W) the full face seen by each pixel (-1: background), ``face_to_patch`` (F,),
-    ``pixel_points_mm`` (H, W, 3) the surface point of each pixel (:func:`pixel_surface_points`), the patches'
+    ``pixel_points_mm`` (H, W, 3) the surface point of each pixel (e.g. ``rig.estimate.pixel_faces(..., points=)``), the
+    patches'
     ``centers_mm`` and unit ``normals`` (K, 3). A least-squares plane over the patch's tangent-plane coordinates
     of its valid pixels' surface points (linear along the surface, not in the foreshortened image), evaluated at
     the centre. Returns the value (K, C), its standard error (K, C) (NaN where fewer than :data:`PATCH_MIN_PIXELS` valid
