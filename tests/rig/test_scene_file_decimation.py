@@ -179,3 +179,32 @@ def test_decimated_shadows_agree_with_the_full_mesh() -> None:
     shadowed = ~full & clear
     assert shadowed.sum() > 20                                        # the crater does cast a shadow
     assert np.mean(vis[clear] == full[clear]) > 0.97
+
+
+def test_gather_patch_pixels_evaluates_the_plane_at_the_centre() -> None:
+    """A radiance linear along the surface: the plane through a patch's pixels gives the value at the patch centre
+    exactly, where their mean (at the pixels' centroid) would not; too few pixels give NaN, collinear ones the
+    mean."""
+    h, w = 20, 24
+    v, u = np.mgrid[0:h, 0:w].astype(float)
+    points = np.stack([0.1 * u, 0.1 * v, np.zeros_like(u)], axis=-1)
+    face = np.zeros((h, w), np.int32)                      # patch 0: the 20 x 20 block
+    face[:, 20:] = -1
+    face[0, 20:23] = 1                                     # patch 1: 3 pixels
+    face[8:17, 22] = 2                                     # patch 2: 9 pixels in a column: collinear
+    img = (2.0 + 3.0 * points[..., 0] + 1.0 * points[..., 1])[..., None]
+    var = np.full_like(img, 0.01)
+    valid = face[..., None] >= 0
+    centers = np.array([[0.5, 0.6, 0.0], [2.1, 0.0, 0.0], [2.0, 1.0, 0.0]])
+    normals = np.tile([0.0, 0.0, 1.0], (3, 1))
+    from estimation.single_image import gather_patch_pixels
+
+    obs, sig, n = gather_patch_pixels(img, var, valid, face, np.array([0, 1, 2]), points, centers, normals)
+    assert n[:, 0].tolist() == [400, 3, 9]
+    assert obs[0, 0] == pytest.approx(2.0 + 1.5 + 0.6, abs=1e-9)          # not the mean over the block (5.8)
+    assert np.mean(img[:, :20]) == pytest.approx(5.8)
+    assert 0.1 / 20 < sig[0, 0] < 0.1                     # between sigma / sqrt(400) and one pixel's sigma
+    assert np.isnan(obs[1, 0]) and np.isnan(sig[1, 0])
+    sel = face == 2
+    assert obs[2, 0] == pytest.approx(float(np.mean(img[sel, 0])))         # no plane through a line: the mean
+    assert obs[2, 0] != pytest.approx(2.0 + 3.0 * 2.0 + 1.0 * 1.0)
