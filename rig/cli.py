@@ -271,6 +271,16 @@ def _cmd_devices(args: argparse.Namespace) -> int:
     return 0 if all(r["ok"] for r in rows) else 1
 
 
+def _patches_arg(text: str) -> int | str:
+    """argparse type of ``--patches``: "auto" or an integer (its range is checked against the mesh later)."""
+    if text == "auto":
+        return text
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected 'auto' or an integer number of patches, got {text!r}") from None
+
+
 def _int_at_least(lo: int):
     """argparse type: an integer >= lo (for the single-image reference options)."""
     def parse(text: str) -> int:
@@ -473,6 +483,10 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--shadows", choices=["auto", "on", "off"], default=None,
                    help="cast shadows of the lights on the mesh (default: the scene file's [estimation].shadows, "
                         "else auto = on for non-convex meshes; docs/visibility.md)")
+    q.add_argument("--patches", type=_patches_arg, default=None, metavar="auto|N",
+                   help="patch budget: N patches from a copy of the mesh decimated to N faces (visibility, pixel "
+                        "map and shadows stay on the full mesh); default: the scene file's [estimation].patches, "
+                        "else auto = decimate to 10000 a mesh of more than max_patches faces (docs/scene-file.md)")
     q.add_argument("--out", type=Path, default=None,
                    help="JSON result file (default: <scene>.estimate.json beside the scene file)")
     q.add_argument("--json", action="store_true", help="print the result as JSON instead of a table")

@@ -275,24 +275,45 @@ def _object_center(manifest: dict[str, Any], surveys: dict[str, Any]) -> np.ndar
     return np.asarray(surveys[target]["xyz_mm"], float) - np.asarray(obj["target_offset_mm"], float)
 
 
-def pixel_faces(mesh: Any, camera: Any, *, engine: Any = None) -> np.ndarray:
+def pixel_faces(mesh: Any, camera: Any, *, engine: Any = None, points: np.ndarray | None = None) -> np.ndarray:
     """Index of the mesh face seen by each pixel (H, W) int32, -1 where the pixel's ray misses the mesh.
 
     Exact for any mesh (concave, several bodies, self-occluding): one ray per pixel centre from the camera
     (``camera.pixel_rays()``: the pinhole, or a scene file's distorted camera through its undistorted pixel
     centres), first hit by :class:`estimation.rays.RayEngine` (Embree; built here from ``mesh.vertices`` and
     ``mesh.faces`` unless an ``engine`` of the same mesh is given). A first hit on the back of a face (an open
-    mesh seen from behind, or from inside) is -1 too: no outer surface is observed there.
+    mesh seen from behind, or from inside) is -1 too: no outer surface is observed there. ``points``: an (H, W, 3)
+    float array that receives the surface point each pixel sees (NaN where -1), from the same rays. With a
+    :class:`estimation.camera.PinholeCamera` and the whole mesh in front of it, only the pixels inside the bounding
+    box of the projected vertices (+1 px) cast rays (a triangle projects inside its vertices' box).
     """
     from estimation.rays import RayEngine
+
+    from estimation.camera import PinholeCamera
 
     if engine is None:
         engine = RayEngine(np.asarray(mesh.vertices, float), np.asarray(mesh.faces))
     origins, dirs = camera.pixel_rays()
-    face, _ = engine.first_hit(origins, dirs)
+    h, w = origins.shape[:2]
+    rows, cols = slice(0, h), slice(0, w)
+    if isinstance(camera, PinholeCamera):   # only pixels inside the projected vertices' box can see the mesh
+        uv, z = camera.project(engine.vertices)
+        if np.all(z > 0) and np.all(np.isfinite(uv)):
+            lo = np.floor(uv.min(axis=0)).astype(int) - 1
+            hi = np.ceil(uv.max(axis=0)).astype(int) + 2
+            cols = slice(int(np.clip(lo[0], 0, w)), int(np.clip(hi[0], 0, w)))
+            rows = slice(int(np.clip(lo[1], 0, h)), int(np.clip(hi[1], 0, h)))
+    face = np.full((h, w), -1, dtype=np.intp)
+    dist = np.full((h, w), np.inf)
+    if rows.stop > rows.start and cols.stop > cols.start:
+        face[rows, cols], dist[rows, cols] = engine.first_hit(origins[rows, cols], dirs[rows, cols])
     hit = face >= 0
     back = np.einsum("ij,ij->i", engine.face_normals[face[hit]], dirs[hit]) >= 0
     face[hit] = np.where(back, -1, face[hit])
+    if points is not None:
+        on = face >= 0
+        points[...] = np.nan
+        points[on] = origins[on] + dist[on][:, None] * dirs[on]
     return face.astype(np.int32)
 
 

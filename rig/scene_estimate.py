@@ -14,6 +14,7 @@ import math
 import platform
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +26,7 @@ from drivers.atomic import atomic_write
 from .provenance import jsonable
 from .scene_file import load_scene
 from .scene_spec import (METHODS, MODELS, REFERENCE_MODEL, RESULT_FORMAT, Array, Scene, SceneFileError,
-                         environment_directions, environment_grid_shape)
+                         environment_directions, environment_grid_shape, patches_error, resolve_patches)
 from .session import software_version
 
 
@@ -70,6 +71,66 @@ def _specular_patches(scene: Scene, patches: Any) -> NDArray[np.bool_]:
         h /= np.maximum(np.linalg.norm(h, axis=1, keepdims=True), 1e-12)
         spec |= np.einsum("kc,kc->k", h, patches.normals) >= cos_cone
     return spec
+
+
+# ---------------------------------------------------------------------------------------------- patches
+@dataclass(frozen=True)
+class _SceneGeometry:
+    """The scene's patches, the full mesh's pixel-to-face map (H, W), and the decimation (None: one patch per
+    face) with the reason the patch budget gave."""
+
+    patches: Any
+    pixel_face: NDArray[np.int32]
+    decimated: Any
+    reason: str
+    pixel_points_mm: Array | None = None     # (H, W, 3) the surface point of each pixel (decimated patches only)
+
+    def summary(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"decimated": self.decimated is not None, "reason": self.reason}
+        if self.decimated is not None:
+            out.update(self.decimated.summary())
+            out["method"] = ("quadric decimation (trimesh simplify_quadric_decimation); full faces -> nearest patch "
+                             "centre; centres moved onto the full surface; visibility, pixel map and shadows on "
+                             "the full mesh")
+        return out
+
+
+def _scene_patches(scene: Scene, budget: Any, cos_min: float, shadows: bool | str, model_name: str,
+                   stage: dict[str, float]) -> _SceneGeometry:
+    """Patches of the scene's mesh under the patch budget ``budget`` ("auto" or an integer; scene_spec.
+    resolve_patches), the pixel map of the full mesh, and the stage times (added to ``stage``)."""
+    from estimation.single_image import decimate_mesh, patches_from_decimated, patches_from_mesh
+
+    from .estimate import pixel_faces
+
+    mesh, cam, est = scene.mesh_data, scene.camera.model, scene.estimation
+    if budget != est.patches:     # the --patches flag: validated like the file's key
+        bad = patches_error(budget, len(mesh.faces), est.max_patches, scene.mesh.max_edge_mm)
+        if bad is not None:
+            raise SceneFileError(str(scene.path), "estimation.patches (--patches)", bad, budget)
+    target, reason = resolve_patches(budget, len(mesh.faces), est.max_patches)
+    if target is None:
+        t = time.perf_counter()
+        patches = patches_from_mesh(mesh, cam, cos_min=cos_min, occlusion=est.occlusion, shadows=shadows)
+        stage["patches"] = time.perf_counter() - t
+        t = time.perf_counter()
+        faces = pixel_faces(mesh, cam, engine=patches.occluder)
+        stage["pixel_map"] = time.perf_counter() - t
+        return _SceneGeometry(patches, faces, None, reason)
+    if model_name == REFERENCE_MODEL:
+        raise SceneFileError(str(scene.path), "estimation.patches", "one patch per face (patches >= the mesh's "
+                             f"{len(mesh.faces)} faces and max_patches >= them) for model {REFERENCE_MODEL}: its "
+                             "Monte Carlo reference is not built for decimated patches", budget)
+    t = time.perf_counter()
+    patch_mesh = decimate_mesh(mesh, target)
+    stage["decimation"] = time.perf_counter() - t
+    dec = patches_from_decimated(mesh, patch_mesh, cam, cos_min=cos_min, occlusion=est.occlusion, shadows=shadows)
+    stage.update(dec.seconds)
+    t = time.perf_counter()
+    points = np.empty((cam.height_px, cam.width_px, 3))
+    faces = pixel_faces(mesh, cam, engine=dec.engine, points=points)
+    stage["pixel_map"] = time.perf_counter() - t
+    return _SceneGeometry(dec.patches, faces, dec, reason, points)
 
 
 # ---------------------------------------------------------------------------------------------- estimation
@@ -134,7 +195,8 @@ def _scene_summary(scene: Scene) -> dict[str, Any]:
                        "max_view_angle_deg": scene.estimation.max_view_angle_deg,
                        "occlusion": scene.estimation.occlusion, "shadows": scene.estimation.shadows,
                        "cutoff_mm": scene.estimation.cutoff_mm,
-                       "model_error": scene.estimation.model_error},
+                       "model_error": scene.estimation.model_error, "patches": scene.estimation.patches,
+                       "max_patches": scene.estimation.max_patches},
         "noise": None if scene.noise is None else {"sigma": scene.noise.sigma,
                                                    "electrons_per_value": scene.noise.electrons_per_value,
                                                    "read_noise": scene.noise.read_noise,
@@ -146,7 +208,8 @@ def _scene_summary(scene: Scene) -> dict[str, Any]:
 
 def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None = None,
                    reference_spp: int | None = None, reference_iterations: int | None = None,
-                   reference_seed: int | None = None, shadows: bool | str | None = None) -> dict[str, Any]:
+                   reference_seed: int | None = None, shadows: bool | str | None = None,
+                   patches: int | str | None = None) -> dict[str, Any]:
     """Run the single-image method on a loaded scene; return a JSON-able result (docs/scene-file.md, "Output").
 
     ``method`` overrides the scene's ``[estimation].method``, ``model`` its ``[material].model``, and the
@@ -156,12 +219,17 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
     raised by :func:`load_scene`, or are raised here as :class:`SceneFileError` when only the reference cannot
     handle them (e.g. point lights through a non-convex refracting mesh). ``shadows`` ("auto", True/"on",
     False/"off") overrides ``[estimation].shadows``: cast shadows of the lights on the mesh (docs/visibility.md).
+    ``patches`` ("auto" or an integer) overrides ``[estimation].patches``: the patches come from a copy of the mesh
+    decimated to that many faces, while visibility, the pixel map and cast shadows use the full mesh
+    (:mod:`estimation.single_image.decimation`). ``seconds_by_stage`` in the result times the stages.
     """
-    from estimation.single_image import SingleImageResult, estimate_single_image, patches_from_mesh
+    from estimation.single_image import SingleImageResult, estimate_single_image
+    from estimation.single_image.decimation import PATCH_MIN_PIXELS, gather_patch_pixels
 
-    from .estimate import pixel_faces, sample_at_points
+    from .estimate import sample_at_points
 
     t0 = time.perf_counter()
+    budget = scene.estimation.patches if patches is None else patches
     meth = method or scene.estimation.method
     if meth not in METHODS:
         raise SceneFileError(str(scene.path), "estimation.method", "one of " + ", ".join(METHODS), meth)
@@ -181,12 +249,16 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
     sh = est.shadows if shadows is None else {"on": True, "off": False}.get(shadows, shadows)  # type: ignore[call-overload]
     if not (sh == "auto" or isinstance(sh, bool)):
         raise ValueError(f"shadows must be 'auto', 'on', 'off', True or False; got {shadows!r}")
-    patches = patches_from_mesh(mesh, cam, cos_min=cos_min, occlusion=est.occlusion, shadows=sh)
+    stage: dict[str, float] = {}
+    geo = _scene_patches(scene, budget, cos_min, sh, model_name, stage)
+    patches = geo.patches
+    dec = geo.decimated
     img = scene.image_data
     n_ch = img.shape[2]
     h, w = img.shape[:2]
-    faces = pixel_faces(mesh, cam)
+    faces = geo.pixel_face
     on_object = faces >= 0
+    t_obs = time.perf_counter()
     user_ok = np.ones((h, w), bool) if scene.mask_data is None else scene.mask_data
     sat_ok = np.ones((h, w), bool) if scene.image.saturation is None else ~np.any(
         img >= scene.image.saturation, axis=2)
@@ -194,21 +266,33 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
     if scene.stderr_data is not None:
         valid &= np.isfinite(scene.stderr_data)
     var, noise_info = _pixel_variance(scene, np.all(valid, axis=2))
-    obs, sigma = sample_at_points(img, var, valid, cam, patches.centers_mm, window_px=est.window_px)
+    if dec is None:
+        obs, sigma = sample_at_points(img, var, valid, cam, patches.centers_mm, window_px=est.window_px)
+    else:   # from the pixels of the full faces that belong to each patch
+        assert geo.pixel_points_mm is not None
+        obs, sigma, _ = gather_patch_pixels(img, var, valid, faces, dec.face_to_patch, geo.pixel_points_mm,
+                                            patches.centers_mm, patches.normals)
     obs[~patches.visible] = np.nan
 
     # what excluded the visible patches (a patch can be counted under several reasons)
     ones = np.ones((h, w, 1))
     vis_centers = patches.centers_mm[patches.visible]
-    base, _ = sample_at_points(ones, ones * 0, on_object[..., None], cam, vis_centers, window_px=est.window_px)
+
+    def observable(ok_px: NDArray[np.bool_]) -> NDArray[np.bool_]:
+        """Which visible patches would be observed if only the pixels ``ok_px`` (H, W) were valid."""
+        if dec is None:
+            v, _ = sample_at_points(ones, ones * 0, ok_px[..., None], cam, vis_centers, window_px=est.window_px)
+            return np.isfinite(v[:, 0])
+        n_px = np.bincount(dec.face_to_patch[faces[ok_px & on_object]], minlength=len(patches.areas_mm2))
+        return n_px[patches.visible] >= PATCH_MIN_PIXELS
+
+    base = observable(on_object)
 
     def lost(extra_ok: NDArray[np.bool_]) -> int:
-        cut, _ = sample_at_points(ones, ones * 0, (on_object & extra_ok)[..., None], cam, vis_centers,
-                                   window_px=est.window_px)
-        return int(np.sum(np.isfinite(base[:, 0]) & ~np.isfinite(cut[:, 0])))
+        return int(np.sum(base & ~observable(on_object & extra_ok)))
 
     excluded: dict[str, int] = {
-        "off_object_or_frame": int(np.sum(~np.isfinite(base[:, 0]))),
+        "off_object_or_frame": int(np.sum(~base)),
         "mask": lost(user_ok) if scene.mask_data is not None else 0,
         "saturated": lost(sat_ok) if scene.image.saturation is not None else 0,
     }
@@ -222,7 +306,11 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
     factor = 2.0 if scene.image.cross_polarized else 1.0  # the analyzer passes half the depolarized diffuse light
     obs = obs / k * factor
     sigma = sigma / k * factor
+    stage["sampling"] = time.perf_counter() - t_obs
+    t_irr = time.perf_counter()
     e_t = _irradiance(scene, patches)
+    stage["irradiance_and_shadows"] = time.perf_counter() - t_irr
+    t_fit = time.perf_counter()
     n_obs = np.isfinite(obs[patches.visible]).sum(axis=0)
     fit_kw: dict[str, Any] = dict(method=meth, bin_mm=est.bin_mm, cutoff_mm=est.cutoff_mm,
                                   noise_sigma=sigma,
@@ -248,6 +336,7 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
                          "seconds_total": res.extra.get("seconds_total")}
     else:
         res = estimate_single_image(obs, patches, e_t, scene.material.eta, model=model_name, **fit_kw)
+    stage["fit"] = time.perf_counter() - t_fit
     seconds = time.perf_counter() - t0
     channels = ["R", "G", "B"] if n_ch == 3 else ["Y"]
     out: dict[str, Any] = {
@@ -255,8 +344,9 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
         "success": bool(res), "message": res.message if patches.visible.any() else
         res.message + " (check the camera pose and that the mesh's face normals point outward)",
         "method": res.method, "model": model_name, "eta": scene.material.eta, "channels": channels,
-        "seconds": seconds,
+        "seconds": seconds, "seconds_by_stage": stage,
         "observations": {"patches": int(len(patches.areas_mm2)), "visible": int(patches.visible.sum()),
+                         "mesh_faces": int(len(mesh.faces)), "patch_decimation": geo.summary(),
                          "observed_per_channel": n_obs.tolist(), "excluded_patches": excluded,
                          "object_pixels": int(on_object.sum()), "patch_spacing_mm": patches.spacing_mm,
                          "cast_shadows": patches.shadows,
@@ -356,6 +446,10 @@ def format_table(result: dict[str, Any]) -> str:
              f"  method {result.get('method')}, model {result.get('model')}, eta {result.get('eta')}, "
              f"{obs.get('visible', 0)} visible of {obs.get('patches', 0)} patches, observed per channel "
              f"{obs.get('observed_per_channel')}, {result.get('seconds', 0.0):.1f} s"]
+    dec = obs.get("patch_decimation") or {}
+    if dec.get("decimated"):
+        lines.append(f"  {dec.get('reason')} (decimation deviation median {dec.get('deviation_mm_median', 0.0):.3g} "
+                     f"mm, 99 % {dec.get('deviation_mm_p99', 0.0):.3g} mm)")
     if not result.get("success"):
         lines.append(f"  FAILED: {result.get('message')}")
         lines += _reference_lines(result)
@@ -397,7 +491,8 @@ def format_table(result: dict[str, Any]) -> str:
 
 def run_cli(args: Any) -> int:
     """``rig estimate single-image SCENE [--method M] [--model MODEL] [--reference-spp N]
-    [--reference-iterations K] [--reference-seed S] [--shadows auto|on|off] [--out FILE] [--json]``.
+    [--reference-iterations K] [--reference-seed S] [--shadows auto|on|off] [--patches auto|N] [--out FILE]
+    [--json]``.
 
     Prints a table (or the JSON with ``--json``) and writes the JSON atomically to ``--out`` or
     ``<scene>.estimate.json`` beside the scene file. Returns 0 on success, 1 if the estimate failed (the reason
@@ -408,7 +503,7 @@ def run_cli(args: Any) -> int:
                             reference_spp=getattr(args, "reference_spp", None),
                             reference_iterations=getattr(args, "reference_iterations", None),
                             reference_seed=getattr(args, "reference_seed", None),
-                            shadows=getattr(args, "shadows", None))
+                            shadows=getattr(args, "shadows", None), patches=getattr(args, "patches", None))
     out = getattr(args, "out", None)
     out_path = Path(out) if out is not None else Path(args.scene).with_suffix(".estimate.json")
     text = json.dumps(result, indent=2, allow_nan=False) + "\n"

@@ -28,7 +28,7 @@ from .provenance import sha256_file
 from .scene_spec import (_AXES, ENV_SUFFIXES, INTEGER_SATURATION, MASK_SUFFIXES, MESH_SUFFIXES, MESH_UNITS_MM,
                          METHODS, MODELS, SCENE_FORMAT_VERSION, Array, CameraSpec, DirectionalLightSpec,
                          EnvironmentSpec, EstimationSpec, ImageSpec, MaterialSpec, MeshSpec, NoiseSpec,
-                         PointLightSpec, Scene, SceneFileError, Vec3, _max_normalized_radius)
+                         PointLightSpec, Scene, SceneFileError, Vec3, _max_normalized_radius, patches_error)
 
 __all__ = ["load_scene", "parse_scene"]
 
@@ -457,7 +457,7 @@ def parse_scene(data: dict[str, Any], path: Path, file: str | None = None) -> Sc
 
     es = top.section("estimation") if top.has("estimation") else _SceneReader(file, {}, "estimation.")
     es.only(("method", "bin_mm", "window_px", "max_view_angle_deg", "occlusion", "cutoff_mm", "model_error",
-             "max_patches", "reference_spp", "reference_iterations", "reference_seed", "shadows"))
+             "max_patches", "reference_spp", "reference_iterations", "reference_seed", "shadows", "patches"))
     window = es.int("window_px", 1, lo=1, hi=15)
     if window % 2 == 0:
         raise es.fail("window_px", "an odd number of pixels (1, 3, 5, ...)", window)
@@ -474,7 +474,8 @@ def parse_scene(data: dict[str, Any], path: Path, file: str | None = None) -> Sc
         model_error=es.num("model_error", 0.02, lo=0.0, hi=1.0), max_patches=es.int("max_patches", 20000, lo=10),
         reference_spp=es.int("reference_spp", 128, lo=2, hi=1_000_000),
         reference_iterations=es.int("reference_iterations", 4, lo=1, hi=100),
-        reference_seed=es.int("reference_seed", 1, lo=0, hi=2 ** 31 - 1), shadows=shadows)
+        reference_seed=es.int("reference_seed", 1, lo=0, hi=2 ** 31 - 1), shadows=shadows,
+        patches=es.data.get("patches", "auto"))
     n_faces = len(mesh.faces)
     render_mesh = mesh
     if mesh_spec.max_edge_mm is not None:
@@ -482,10 +483,13 @@ def parse_scene(data: dict[str, Any], path: Path, file: str | None = None) -> Sc
         v, f = trimesh.remesh.subdivide_to_size(mesh.vertices, mesh.faces, max_edge=mesh_spec.max_edge_mm)
         mesh = trimesh.Trimesh(v, f, process=False)
         n_faces = len(f)
-    if n_faces > estimation.max_patches:
-        raise es.fail("max_patches", f"at least the mesh's face count ({n_faces} faces"
-                      f"{' after max_edge_mm' if mesh_spec.max_edge_mm else ''}); decimate the mesh (faces ~ patch "
-                      "spacing well below l_d) or raise max_patches (cost grows with faces x visible faces)",
+    bad = patches_error(estimation.patches, n_faces, estimation.max_patches, mesh_spec.max_edge_mm)
+    if bad is not None:
+        raise es.fail("patches", bad, estimation.patches)
+    if n_faces > estimation.max_patches and mesh_spec.max_edge_mm is not None:   # (otherwise: decimated)
+        raise es.fail("max_patches", f"at least the mesh's face count ({n_faces} faces after max_edge_mm); use a "
+                      "larger max_edge_mm, or drop it (patches = auto then decimates a mesh of more than "
+                      "max_patches faces), or raise max_patches (cost grows with faces x visible faces)",
                       estimation.max_patches)
 
     noise = None

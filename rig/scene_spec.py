@@ -254,6 +254,7 @@ class EstimationSpec:
     reference_iterations: int = 4  # at most this many reference renders
     reference_seed: int = 1  # the seed of every reference render (common random numbers)
     shadows: str | bool = "auto"  # cast shadows of the lights: "auto" = for non-convex meshes (docs/visibility.md)
+    patches: str | int = "auto"  # patch budget: "auto" or a face count of a decimated copy (resolve_patches)
 
 
 @dataclass(frozen=True)
@@ -296,6 +297,47 @@ class Scene:
     @property
     def channels(self) -> int:
         return int(self.image_data.shape[2])
+
+
+# ---------------------------------------------------------------------------------------------- patch budget
+#: ``patches = "auto"`` decimates a mesh of more than ``max_patches`` faces to this many patches
+AUTO_PATCHES = 10_000
+#: the fewest patches a scene file may ask for
+MIN_PATCHES = 10
+
+
+def patches_error(requested: object, n_faces: int, max_patches: int, max_edge_mm: float | None) -> str | None:
+    """What is wrong with a ``patches`` value ("auto" or an integer) for a mesh of ``n_faces`` faces, or None."""
+    if requested == "auto":
+        return None
+    if isinstance(requested, bool) or not isinstance(requested, int):
+        return "\"auto\" or an integer number of patches"
+    if max_edge_mm is not None:
+        return "\"auto\" when [mesh].max_edge_mm is set (max_edge_mm refines the mesh, patches coarsens it)"
+    if requested < MIN_PATCHES:
+        return f"an integer >= {MIN_PATCHES} (patches of a decimated copy of the mesh)"
+    if requested > n_faces:
+        return (f"at most the mesh's face count ({n_faces} faces): patches come from a decimated copy of the mesh, "
+                "decimation only removes faces")
+    if requested > max_patches:
+        return f"at most max_patches ({max_patches}); raise max_patches to allow more (cost grows with patches)"
+    return None
+
+
+def resolve_patches(requested: str | int, n_faces: int, max_patches: int) -> tuple[int | None, str]:
+    """The number of patches to decimate to (None: one patch per face) and why, for a valid ``patches`` value:
+    an integer below the face count decimates to it; "auto" decimates to min(AUTO_PATCHES, max_patches) a mesh
+    of more than ``max_patches`` faces and leaves smaller ones alone."""
+    if requested == "auto":
+        if n_faces > max_patches:
+            target = min(AUTO_PATCHES, max_patches)
+            return target, (f"patches = auto: the mesh's {n_faces} faces exceed max_patches ({max_patches}): "
+                            f"decimated to {target} patches")
+        return None, f"patches = auto: one patch per face ({n_faces} faces <= max_patches {max_patches})"
+    assert isinstance(requested, int)
+    if requested >= n_faces:
+        return None, f"patches = {requested}: one patch per face ({n_faces} faces)"
+    return requested, f"patches = {requested}: decimated from {n_faces} faces"
 
 
 # ---------------------------------------------------------------------------------------------- illumination

@@ -78,7 +78,8 @@ Geometry in mm (rig frame), colour channels on the last axis.
 
 Modules: :mod:`.geometry` (patches, lights, irradiance), :mod:`.far_field` (pair geometry, source clusters,
 interpolation bases), :mod:`.models` (the profile models as the fit sees them), :mod:`.fit` (the per-channel fit and
-its intervals), :mod:`.results` (result types), :mod:`.estimate` (the entry points).
+its intervals), :mod:`.results` (result types), :mod:`.estimate` (the entry points), :mod:`.decimation` (patches of a decimated copy
+of a large mesh, seen and shadowed by the full mesh).
 """
 from __future__ import annotations
 
@@ -89,6 +90,8 @@ from .far_field import (EXACT_PAIR_BUDGET, EXACT_PAIR_BUDGET_BINNED, FAR_FIELD_M
                         quantization_weights)
 from .fit import (_LOG_SA_MAX, _LOG_SSP_BOUNDS, _box_qp_2d, _fit_channel, _golden_batch, _lm_multistart,
                   _Problem, _reduce)
+from .decimation import (DecimatedPatches, decimate_mesh, gather_patch_pixels,
+                         patches_from_decimated)
 from .geometry import (DirectionalLights, EnvironmentMap, Lights, Patches, PointLights, patch_irradiance,
                        patches_from_mesh, sample_image_at_patches)
 from .models import BIAS_RADII_MFP, MODELS_ALL, _binned_profile, check_model, model_bias
@@ -108,6 +111,10 @@ __all__ = [
     "DirectionalLights",
     "EnvironmentMap",
     "patches_from_mesh",
+    "DecimatedPatches",
+    "decimate_mesh",
+    "patches_from_decimated",
+    "gather_patch_pixels",
     "sample_image_at_patches",
     "patch_irradiance",
     "quantization_weights",
