@@ -49,8 +49,10 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-import numpy as np
-import trimesh
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")   # as the rig command line (rig/cli.py)
+
+import numpy as np  # noqa: E402
+import trimesh  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))

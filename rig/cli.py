@@ -3,12 +3,20 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
-import sys
-import time
-from pathlib import Path
+import os
 
-from drivers.errors import RigError
+# One BLAS thread unless the user says otherwise (before numpy is imported): the estimators' BLAS work is small
+# dense algebra (QR of ~2600 x 130 systems, LED response tables), where OpenBLAS's second thread only spins. Measured
+# on the 2-core test machine under load (benchmarks/meshes.py, the 100k-face scene): the single-image fit 2.7-3.9 s
+# with one thread, 5.1-18 s with OpenBLAS's default two; the LED response table 2.6 s vs 12 s (benchmarks/gradients.py).
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import signal  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+from drivers.errors import RigError  # noqa: E402
 
 
 def load_config(path: Path | None):
