@@ -35,7 +35,8 @@ counts; rules.py), a summary table and, per failure class, the pairs within 10 %
 Non-convex family (issue 17 part 5, ``--family nonconvex`` or ``all``; benchmarks/zoo/nonconvex.py): scenes 24-27,
 an L-block and a U-channel under a point light that casts the object's own shadow on an observed face and under a
 smooth sky, eta 1.3-1.5, camera noise; designed, not drawn, and outside ``--quick`` (the 24 drawn scenes, their
-seeds and the CI subset are unchanged). ``--shadows both`` prints every fit with shadows off beside it.
+seeds and the CI subset are unchanged). ``--shadows both`` prints every fit with shadows off beside it (non-convex
+meshes only: on a convex one the fits are the same).
 
 Run: ``python benchmarks/scene_zoo.py [--quick] [--family zoo|nonconvex|all] [--json FILE] [--reference-spp N]
 [--reference-iterations K] [--scenes 0,3,7] [--models mc-table,...] [--shadows auto|on|off|both]``. Cost, measured on 2 shared cores (NUMBA_NUM_THREADS=2): the full zoo
@@ -296,16 +297,19 @@ def main(argv: list[str] | None = None) -> int:
     for i, spec in enumerate(specs):
         print(f"[{i + 1}/{len(specs)}] {spec.name}: frame", file=sys.stderr, flush=True)
         folder, meta = build_scene(spec, root)
+        from estimation.shadows import is_convex_mesh
         from rig.scene_file import load_scene
 
         scene = load_scene(folder / "scene.toml")
         check = file_check(scene, spec, ref_spp)
         results, results_off = [], []
         first = "auto" if args.shadows == "both" else args.shadows
+        # on a convex mesh nothing casts a shadow on the object: the fits with shadows off are the same ones
+        both = args.shadows == "both" and not is_convex_mesh(scene.mesh_data.vertices, scene.mesh_data.faces)
         for m in models:
             print(f"[{i + 1}/{len(specs)}] {spec.name}: {m}", file=sys.stderr, flush=True)
             results.append(run_model(scene, m, spec, ref_spp, ref_it, shadows=first))
-            if args.shadows == "both":
+            if both:
                 results_off.append(run_model(scene, m, spec, ref_spp, ref_it, shadows="off"))
         meta["file_check"] = check
         print_scene(spec, meta, folder, results)
