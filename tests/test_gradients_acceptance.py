@@ -1,7 +1,7 @@
 """Issue 16's acceptance rules (benchmarks/gradients_acceptance.py) on a tiny subset, rendered on the fly.
 
 The full printer (relief slabs of five materials and two periods, 5 mm spheres with --reference, 25 mm spheres) runs
-~40 min; here: a skin1 relief slab (20 x 20 px of 0.25 mm, 16 spp, relief period 2.5 mm, its normals given),
+~40 min; here: a skin1 relief slab (16 x 16 px of 0.25 mm, 16 spp, relief period 2.5 mm, its normals given),
 Monte Carlo frames with camera noise written as a capture folder and estimated through ``rig estimate
 gradients``'s library entry (the 5 mm sphere with --reference costs a minute: not here; see
 benchmarks.gradients_acceptance.ci_cases). Asserted: the rules that must hold on every subset -- the 95 % intervals
