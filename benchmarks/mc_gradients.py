@@ -30,6 +30,10 @@ object pixels x spp x 3 channels per pattern render, over the renderer's own sec
 truncated fraction are printed per material. Nothing here is a verdict: the summary counts channels within
 10 % in D per model, as measured in this run.
 
+Issue 16's acceptance printer (relief slabs, 5 mm spheres with --reference, 25 mm spheres through the capture-folder
+user path, with the rule lines) is ``benchmarks/gradients_acceptance.py``; ``python benchmarks/mc_gradients.py
+--acceptance [its options]`` runs it.
+
 Run: ``python benchmarks/mc_gradients.py [--quick] [--json out.json] [--materials marble,skin1]`` (full: 12
 materials, 32 x 32 px at 128 spp, 4 reference iterations: 336 s measured on 2 shared cores, ~40 % of it spectralon
 (380 collisions per path); ``--quick``: marble and skin1, 16 x 16 px at 16 spp,
@@ -317,6 +321,11 @@ def print_summary(rows: list[dict[str, Any]], infos: dict[str, dict[str, Any]]) 
 
 
 def main(argv: list[str] | None = None) -> int:
+    args_in = list(sys.argv[1:] if argv is None else argv)
+    if "--acceptance" in args_in:   # issue 16's acceptance printer, with the remaining options
+        args_in.remove("--acceptance")
+        from benchmarks.gradients_acceptance import main as acceptance_main
+        return acceptance_main(args_in)
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="marble and skin1, 16 x 16 px, 16 spp, 2 reference "
                     "iterations")

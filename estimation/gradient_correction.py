@@ -181,6 +181,11 @@ class SphereReferenceEstimate:
     seconds: float
     message: str
     provenance: dict[str, Any] = field(default_factory=dict)
+    #: per channel: "ok" (met the stop rule, not censored), "weak" (stopped by the render budget before meeting it,
+    #: or censored: a one-sided interval) or "unknown" (no usable observables)
+    status: list[str] = field(default_factory=list)
+    #: per channel: the stop rule was met at the last render
+    channel_converged: NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, dtype=bool))
 
     def as_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {k: np.asarray(getattr(self, k)).tolist() for k in (
@@ -189,7 +194,8 @@ class SphereReferenceEstimate:
         out["intervals"] = {k: v.tolist() for k, v in self.intervals.items()}
         out["uncorrected"] = {k: np.asarray(v).tolist() for k, v in self.uncorrected.items()}
         out.update(steps=[s.as_dict() for s in self.steps], converged=self.converged, iterations=self.iterations,
-                   seconds=self.seconds, message=self.message, provenance=self.provenance)
+                   seconds=self.seconds, message=self.message, provenance=self.provenance, status=list(self.status),
+                   channel_converged=np.asarray(self.channel_converged).tolist())
         return out
 
 
@@ -329,6 +335,7 @@ def estimate_sphere_with_reference(observed: SphereObservables | DiffusionSummar
     sd_ref = np.zeros((n_ch, 2))
     kA = kB = np.full(n_ch, np.nan)
     cens = cens0.copy()
+    conv_c = np.zeros(n_ch, dtype=bool)
     for it in range(1, max_iterations + 1):
         p = np.exp(x)
         t_r = time.perf_counter()
@@ -392,6 +399,7 @@ def estimate_sphere_with_reference(observed: SphereObservables | DiffusionSummar
                                          cens.tolist(), change, render_s))
         tol = np.maximum(np.log1p(rel_tol), 0.25 * ci)
         tol[:, 1] = np.where(cens, np.inf, tol[:, 1])
+        conv_c = use & np.all(np.abs(step) <= tol, axis=1)
         if np.all(np.abs(step[use]) <= tol[use]):
             converged = True
             break
@@ -410,6 +418,10 @@ def estimate_sphere_with_reference(observed: SphereObservables | DiffusionSummar
                                                                     axis=1),
                                             sa_f[:, None] * np.exp(np.stack([-ci[:, 1], ci[:, 1]], axis=1))),
                  "D_mm": (1.0 / (3.0 * st))[:, None] * np.exp(np.stack([-z * sd_lst, z * sd_lst], axis=1))}
+    if not converged:
+        intervals = _widen_unconverged(intervals, steps, conv_c)
+    status = ["unknown" if not (ok[c] and np.isfinite(st[c])) else
+              "weak" if (cens[c] or not conv_c[c]) else "ok" for c in range(n_ch)]
     alpha = ssp_f / st
     kA_se = np.where(np.isfinite(kA), sd_ref[:, 0], np.nan)
     kB_se = np.where(np.isfinite(kB), sd_ref[:, 1], np.nan)
@@ -425,11 +437,51 @@ def estimate_sphere_with_reference(observed: SphereObservables | DiffusionSummar
         intervals=intervals, censored=cens & ok, kappa_albedo=kA, kappa_blur=kB, kappa_albedo_rel_stderr=kA_se,
         kappa_blur_rel_stderr=kB_se, corrected=corrected, uncorrected=uncorrected, steps=steps,
         converged=converged, iterations=len(steps), seconds=time.perf_counter() - t_all, message=msg,
+        status=status, channel_converged=conv_c.copy(),
         provenance={"radius_mm": rho, "eta": eta_f, "seed": int(seed), "rel_tol": rel_tol, "fdr": fdr,
                     "model": "dipole-jensen (truncated, sphere chord distance)+reference",
                     "jacobian": B.tolist(),
                     "interval": "95 %: observed median intervals and the reference's Monte Carlo error in "
                                 "quadrature on (log albedo, log (1 - shortening)), through the secant Jacobian"})
+
+
+def _widen_unconverged(intervals: dict[str, Array], steps: list[SphereReferenceStep],
+                       converged: NDArray[np.bool_]) -> dict[str, Array]:
+    """Widen the intervals of channels stopped before the stop rule by the distance to the fixed point that the
+    iteration's own path suggests (Aitken's estimate, as in :mod:`estimation.reference_intervals`): with G_i the last
+    refit's change of a log parameter and s the secant slope of G between the last two render points (clipped to
+    SECANT_SLOPE_BOUNDS; one step only: the assumed slope), the remaining error is |G| |1 + s| / |s|; the interval's
+    ends move out by that much in log (added to the statistical half-width, not in quadrature: the error is
+    systematic). The stop rule's intervals cover noise only; a non-converged result also carries this bias."""
+    from .reference_intervals import _ASSUMED_SLOPE, SECANT_SLOPE_BOUNDS
+
+    def log_d(ssp: list[float], sa: list[float]) -> Array:
+        a, b = np.asarray(ssp, dtype=np.float64), np.asarray(sa, dtype=np.float64)
+        return {"D_mm": -np.log(3.0 * (a + b)), "sigma_s_prime_per_mm": np.log(a),
+                "sigma_a_per_mm": np.log(np.maximum(b, 1e-300))}  # type: ignore[return-value]
+
+    last = steps[-1]
+    x_r, x_n = log_d(last.render_sigma_s_prime_per_mm, last.render_sigma_a_per_mm), \
+        log_d(last.sigma_s_prime_per_mm, last.sigma_a_per_mm)
+    prev = steps[-2] if len(steps) >= 2 else None
+    out = dict(intervals)
+    for k in ("D_mm", "sigma_s_prime_per_mm", "sigma_a_per_mm"):
+        g = x_n[k] - x_r[k]      # type: ignore[index]
+        slope = np.full(g.shape, _ASSUMED_SLOPE)
+        if prev is not None:
+            xp_r = log_d(prev.render_sigma_s_prime_per_mm, prev.render_sigma_a_per_mm)[k]   # type: ignore[index]
+            xp_n = log_d(prev.sigma_s_prime_per_mm, prev.sigma_a_per_mm)[k]                   # type: ignore[index]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                sl = (g - (xp_n - xp_r)) / (x_r[k] - xp_r)   # type: ignore[index]
+            slope = np.where(np.isfinite(sl) & (np.abs(x_r[k] - xp_r) > 1e-9),   # type: ignore[index]
+                             np.clip(sl, *SECANT_SLOPE_BOUNDS), slope)
+        extra = np.where(converged | ~np.isfinite(g), 0.0, np.abs(g) * np.abs(1.0 + slope) / np.abs(slope))
+        iv = np.array(intervals[k], dtype=np.float64)
+        with np.errstate(invalid="ignore", over="ignore"):
+            iv[:, 0] = iv[:, 0] * np.exp(-extra)
+            iv[:, 1] = iv[:, 1] * np.exp(extra)
+        out[k] = iv
+    return out
 
 
 def _solve_corrected(u_obs: Array, d: Array, K: Array, x0: Array, rho: float, eta: float, fdr: str,

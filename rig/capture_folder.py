@@ -930,9 +930,18 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
     scale, scale_prov = _albedo_scale(cap, leds, n_ref)
     exposure = {f.key: f.exposure_s for f in cap.frames}
 
+    lut_memo: dict[str, Any] = {}
+
     def folder_maps(images: Mapping[FrameKey, Any], out: Path | None = None) -> Any:
-        """The folder's map computation (also applied to the reference renders, converted to frame units)."""
+        """The folder's map computation (also applied to the reference renders, converted to frame units). The LED
+        response LUT depends only on the LEDs, eta and the surface model: built once per capture (compute_maps'
+        defaults), not once per reference render."""
+        if not cap.leds.ideal and "lut" not in lut_memo:
+            from estimation.gradients import build_response_lut
+            lut_memo["lut"] = build_response_lut(leds, eta=rad.eta, reference_normal=n_ref, surface_center_mm=center,
+                                                 surface_radius_mm=radius)
         return compute_maps(images, albedo_scale=scale, leds=leds, ideal=cap.leds.ideal, eta=rad.eta,
+                            lut=lut_memo.get("lut"),
                             view_dirs=view, tile_rows=tile_rows or 256, white_level=1.0,
                             saturation=rad.saturation_level, dark_threshold=rad.dark_level, object_mask=obj,
                             geometry_normals=geo_normals, reference_normal=n_ref, surface_center_mm=center,

@@ -6,7 +6,8 @@ and for meshes a bounding-volume hierarchy (median split on the longest centroid
 built here in numpy and traversed by :func:`nearest_hit` in numba (no trimesh/embree call inside the walk).
 
 :func:`nearest_hit` is the one query the kernels need: the first crossing of the boundary along a ray with
-t > eps_t, from inside or outside, with the *outward* unit normal there. Positions are nudged by ``nudge`` along
+t > eps_t, from inside or outside, with the *outward* unit normal there (:func:`nearest_hit_below`: the same when
+only crossings before a free flight's end matter; a mesh's BVH is then pruned there). Positions are nudged by ``nudge`` along
 the normal after a boundary event so that the next query does not find the same crossing again.
 
 Conventions: millimetres; the half-space is z <= top_z_mm (surface normal +z) and the slab
@@ -458,10 +459,20 @@ def _hit_box(prm, ox, oy, oz, dx, dy, dz, eps_t):
 
 @njit(cache=True, error_model="numpy")
 def _hit_mesh(nbox, nidx, tris, ox, oy, oz, dx, dy, dz, eps_t, stack):
+    return _hit_mesh_below(nbox, nidx, tris, ox, oy, oz, dx, dy, dz, eps_t, stack, _INF)
+
+
+@njit(cache=True, error_model="numpy")
+def _hit_mesh_below(nbox, nidx, tris, ox, oy, oz, dx, dy, dz, eps_t, stack, t_max):
+    """The BVH query of :func:`_hit_mesh` for crossings with t < ``t_max`` only (inf if none): nodes whose box is
+    entered beyond ``t_max`` are never opened, so a short free flight deep inside a large mesh costs a few box
+    tests instead of a descent to the far surface. The nearest crossing below ``t_max`` is the same (same
+    triangles, same arithmetic) as the unbounded query's."""
     ix = 1.0 / dx
     iy = 1.0 / dy
     iz = 1.0 / dz
-    best = _INF
+    best = t_max
+    found = False
     bn0 = 0.0
     bn1 = 0.0
     bn2 = 0.0
@@ -515,12 +526,15 @@ def _hit_mesh(nbox, nidx, tris, ox, oy, oz, dx, dy, dz, eps_t, stack):
                 t = (e2x * qx + e2y * qy + e2z * qz) * inv
                 if t > eps_t and t < best:
                     best = t
+                    found = True
                     bn0, bn1, bn2 = tris[k, 9], tris[k, 10], tris[k, 11]
         else:
             if sp + 2 <= stack.shape[0]:
                 stack[sp] = nidx[node, 0]
                 stack[sp + 1] = nidx[node, 1]
                 sp += 2
+    if not found:
+        return _INF, 0.0, 0.0, 0.0
     return best, bn0, bn1, bn2
 
 
@@ -551,6 +565,16 @@ def nearest_hit(kind, prm, nbox, nidx, tris, ox, oy, oz, dx, dy, dz, eps_t, stac
     if kind == BOX:
         return _hit_box(prm, ox, oy, oz, dx, dy, dz, eps_t)
     return _hit_mesh(nbox, nidx, tris, ox, oy, oz, dx, dy, dz, eps_t, stack)
+
+
+@njit(cache=True, error_model="numpy")
+def nearest_hit_below(kind, prm, nbox, nidx, tris, ox, oy, oz, dx, dy, dz, eps_t, stack, t_max):
+    """:func:`nearest_hit` when only crossings closer than ``t_max`` matter (a free flight of length t_max): the
+    same crossing when it is closer than ``t_max``, else possibly (meshes: always) t = inf. Analytic shapes answer
+    exactly as :func:`nearest_hit`; meshes prune the BVH at ``t_max`` (:func:`_hit_mesh_below`)."""
+    if kind == MESH:
+        return _hit_mesh_below(nbox, nidx, tris, ox, oy, oz, dx, dy, dz, eps_t, stack, t_max)
+    return nearest_hit(kind, prm, nbox, nidx, tris, ox, oy, oz, dx, dy, dz, eps_t, stack)
 
 
 @njit(cache=True, error_model="numpy")

@@ -51,7 +51,7 @@ from numba import njit
 from .nee import point_light_nee
 from .optics import fresnel_r, reflect, refract, sample_hg_cos, spin
 from .rng import uniform
-from .shapes import nearest_hit, surface_distance
+from .shapes import nearest_hit_below, surface_distance
 
 __all__ = ["walk", "EXITED", "TERMINATED", "TRUNCATED"]
 
@@ -95,9 +95,11 @@ def walk(kind, prm, nbox, nidx, tris, eps_t, nudge, stack, x, y, z, dx, dy, dz, 
     st_fd = sigma_t * (1.0 + _NEE_FD_REL)
     reflected = False  # an internal reflection since the last collision
     while True:
-        t_b, nx, ny, nz = nearest_hit(kind, prm, nbox, nidx, tris, x, y, z, dx, dy, dz, eps_t, stack)
         state, u = uniform(state)
         s = -math.log(u) / sigma_t
+        # only a crossing before the sampled flight's end matters (the query consumes no random numbers, so the
+        # walk is the same as with the unbounded query; meshes prune their BVH at s: deep flights are cheap)
+        t_b, nx, ny, nz = nearest_hit_below(kind, prm, nbox, nidx, tris, x, y, z, dx, dy, dz, eps_t, stack, s)
         if s < t_b:
             x += s * dx
             y += s * dy

@@ -337,3 +337,33 @@ def test_environment_map_orientation_matches_the_gradient_patterns():
         c = render(sph, m, cam, GradientPattern(name + "_c"), spp=4, seed=3)
         assert np.max(np.abs(a.radiance - b.radiance)) < 0.01
         assert np.max(np.abs(c.radiance - b.radiance)) > 0.05
+
+
+def test_bounded_query_is_the_nearest_crossing_below_t_max():
+    """nearest_hit_below (the walk's query, bounded by the sampled free flight): the same crossing and normal as
+    nearest_hit when it is closer than t_max, infinity for a mesh when it is not; analytic shapes answer exactly as
+    nearest_hit."""
+    from simulators.mc.shapes import nearest_hit_below
+
+    mesh = Mesh(trimesh.creation.icosphere(subdivisions=3, radius=2.0))
+    sphere = Sphere((0.0, 0.0, 0.0), 2.0)
+    stack = np.zeros(STACK_SIZE, dtype=np.int64)
+    rng = np.random.default_rng(5)
+    n_below = n_above = 0
+    for _ in range(200):
+        o = rng.uniform(-1.2, 1.2, 3)
+        d = rng.normal(size=3)
+        d /= np.linalg.norm(d)
+        t_max = float(rng.uniform(0.05, 4.0))
+        for shape in (mesh, sphere):
+            g = shape.geometry()
+            args = (g.kind, g.params, g.nodes_box, g.nodes_idx, g.triangles, *o, *d, g.eps_t, stack)
+            t, *n = nearest_hit(*args)
+            tb, *nb = nearest_hit_below(*args, t_max)
+            if t < t_max or shape is sphere:
+                assert tb == t and nb == n
+                n_below += shape is mesh
+            else:
+                assert tb == math.inf
+                n_above += 1
+    assert n_below > 20 and n_above > 20
