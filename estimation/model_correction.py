@@ -50,10 +50,10 @@ The estimate is the maximum-likelihood fit of the *reference* Q(theta) to the ob
 It stops — *converged* — when, after at least two renders, an accepted point's refit moves every parameter by less
 than half its standard error (a one-sided sigma_a interval [0, hi] on its linear scale), that error bounds sigma_s'
 (its 95 % interval at most :data:`MAX_OK_INTERVAL_RATIO` wide: against a factor-72 interval any step is "small"),
-and that step was not cut short by the trust region (:func:`_cut_by_trust_region`: a step on the region's boundary only says the radius is
-small, its minimum lies beyond), or a rejected step was shorter than one standard error (a statistical tie: the
-objective cannot tell the two points apart, again only with a bounded sigma_s'). At that point
-F_i matches the reference in value and slope, so the refit is a stationary point of the reference's own
+and that step was not cut short by the trust region (:func:`_cut_by_trust_region`: a step on the region's
+boundary only says the radius is small, its minimum lies beyond), or a rejected step was shorter than one
+standard error (a statistical tie: the objective cannot tell the two points apart, again only with a bounded
+sigma_s'). At that point F_i matches the reference in value and slope, so the refit is a stationary point of the reference's own
 likelihood, and its intervals — computed from F_i's Jacobian, i.e. Q' — are those of the reference model; they are
 widened where the Monte Carlo derivatives do not resolve that sensitivity (:func:`_derivative_noise_factor`). Without
 derivatives from the reference (D = 0: the plain defect correction), the fixed point's noise is amplified by the map
@@ -700,8 +700,12 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
         # trust region the last ratio tests validated), the intervals then stretched over the step (below)
         centre = np.where(gn_mode[:, None], np.where(converged[:, None], acc.theta, theta_fit), theta_keep)
         half = np.where(gn_mode[:, None], 2e-3, 1e-9)
-        final = _corrected_fit(obs, sig, acc, patches, e_t, eta_f, base_model,
-                               np.stack([centre - half, centre + half], axis=1), fit_kwargs)
+        try:
+            final = _corrected_fit(obs, sig, acc, patches, e_t, eta_f, base_model,
+                                   np.stack([centre - half, centre + half], axis=1), fit_kwargs)
+        except ValueError:  # a last proposal outside the fit's own ranges (clipped to an empty box): keep the refit
+            # (seen once the stop rule stopped calling a cut step converged: a 5 mm skimmilk pyramid at 32 spp)
+            final = None
         if final:
             acc_fit = final
     result = acc_fit
