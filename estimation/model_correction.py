@@ -48,9 +48,12 @@ The estimate is the maximum-likelihood fit of the *reference* Q(theta) to the ob
    +140 % of sigma_s' raised the objective), its slope at theta_i cannot.
 
 It stops — *converged* — when, after at least two renders, an accepted point's refit moves every parameter by less
-than half its standard error (a one-sided sigma_a interval [0, hi] on its linear scale), or a rejected step was
-shorter than one standard error (a statistical tie: the objective cannot tell the two points apart). At that point
-F_i matches the reference in value and slope, so the refit is a stationary point of the reference's own
+than half its standard error (a one-sided sigma_a interval [0, hi] on its linear scale), that error bounds sigma_s'
+(its 95 % interval at most :data:`MAX_OK_INTERVAL_RATIO` wide: against a factor-72 interval any step is "small"),
+and that step was not cut short by the trust region (:func:`_cut_by_trust_region`: a step on the region's
+boundary only says the radius is small, its minimum lies beyond), or a rejected step was shorter than one
+standard error (a statistical tie: the objective cannot tell the two points apart, again only with a bounded
+sigma_s'). At that point F_i matches the reference in value and slope, so the refit is a stationary point of the reference's own
 likelihood, and its intervals — computed from F_i's Jacobian, i.e. Q' — are those of the reference model; they are
 widened where the Monte Carlo derivatives do not resolve that sensitivity (:func:`_derivative_noise_factor`). Without
 derivatives from the reference (D = 0: the plain defect correction), the fixed point's noise is amplified by the map
@@ -426,6 +429,21 @@ def _settled(step: Array, se: Array) -> NDArray[np.bool_]:
     return np.all(np.abs(np.expm1(np.abs(step))) <= SETTLE_SD_FRACTION * se, axis=1)
 
 
+def _cut_by_trust_region(theta_fit: Array, theta: Array, box_log: Array, gn_step: Array | None, radius: Array,
+                         gn_mode: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """(C,) the last step ended on the trust region's boundary: a Gauss-Newton step of length >= the radius in
+    some parameter, or a corrected-model refit on a face of its search box (not sigma_a's floor 1e-7 /mm, which a
+    non-identified sigma_a may rightly reach)."""
+    tol = 1e-3
+    lo, hi = box_log[:, 0, :], box_log[:, 1, :]
+    at_lo = (theta_fit <= lo + tol) & (lo > np.log(1e-7) + tol)
+    at_hi = theta_fit >= hi - tol
+    cut = np.any(at_lo | at_hi, axis=1) & ~gn_mode
+    if gn_step is not None:
+        cut |= gn_mode & np.any(np.abs(gn_step) >= (1.0 - tol) * radius, axis=1)
+    return cut
+
+
 def _metric(sig: Array | None, se: Array, q: Array, model_error: float) -> Array:
     """Standard deviation (m, C) an observation is compared with a render by: the stated noise, the render's and a
     relative model error of the render's radiance (without stated noise: a relative scale with a small floor)."""
@@ -550,6 +568,7 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
     path: list[tuple[Array, Array]] = []  # (accepted point, refit) for the derivative-free widening
     refits: list[SingleImageResult] = []
     last_step = np.zeros((n_ch, 2))
+    cut_last = np.zeros(n_ch, bool)
     rendered: list[tuple[Array, Array]] = []  # (render point, its radiance) for the flat-likelihood check
     for it in range(1, max_iterations + 1):
         q, se, dq, dq_se, render_s = _render(reference, theta_try, eta_f, seed, patches, n_ch)
@@ -633,12 +652,20 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
         refits.append(fit)
         acc_fit = fit
         se_fit = _standard_errors(fit, theta_fit)
-        settled = _settled(step, se_fit) & accepted
+        # a step the trust region cut short says nothing about where the iteration settles: its own minimum lies
+        # beyond (measured: an L-block under a sky, radius 0.018 after a noisy ratio test, "converged" on a 2 % step
+        # after renders at +74, +54, +28, +19 % of sigma_s')
+        cut = _cut_by_trust_region(theta_fit, acc.theta, box_log, gn_step, radius, gn_mode)
+        cut_last = cut
+        # and a step is small against its standard error only where that error bounds sigma_s' at all: against an
+        # interval of a factor 72 (a 40 mm box under a sky) a step of +49 -> +32 -> +21 % was "settled"
+        bounded = se_fit[:, 0] <= np.log(MAX_OK_INTERVAL_RATIO) / (2 * _Z95)
+        settled = _settled(step, se_fit) & accepted & ~cut & bounded
         if acc_prev_step is not None:  # a rejected step within noise of the accepted point: a tie, converged
-            tie = ~accepted & np.all(np.abs(np.expm1(np.abs(acc_prev_step))) <= TIE_SD * se_fit, axis=1)
+            tie = ~accepted & bounded & np.all(np.abs(np.expm1(np.abs(acc_prev_step))) <= TIE_SD * se_fit, axis=1)
             settled |= tie
         if rel_tol > 0:
-            settled |= accepted & np.all(np.abs(np.expm1(step)) <= rel_tol, axis=1)
+            settled |= accepted & ~cut & bounded & np.all(np.abs(np.expm1(step)) <= rel_tol, axis=1)
         converged = settled
         # the corrected model's objective at the refit, for the next ratio test
         with np.errstate(all="ignore"):
@@ -673,8 +700,12 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
         # trust region the last ratio tests validated), the intervals then stretched over the step (below)
         centre = np.where(gn_mode[:, None], np.where(converged[:, None], acc.theta, theta_fit), theta_keep)
         half = np.where(gn_mode[:, None], 2e-3, 1e-9)
-        final = _corrected_fit(obs, sig, acc, patches, e_t, eta_f, base_model,
-                               np.stack([centre - half, centre + half], axis=1), fit_kwargs)
+        try:
+            final = _corrected_fit(obs, sig, acc, patches, e_t, eta_f, base_model,
+                                   np.stack([centre - half, centre + half], axis=1), fit_kwargs)
+        except ValueError:  # a last proposal outside the fit's own ranges (clipped to an empty box): keep the refit
+            # (seen once the stop rule stopped calling a cut step converged: a 5 mm skimmilk pyramid at 32 spp)
+            final = None
         if final:
             acc_fit = final
     result = acc_fit
@@ -727,7 +758,10 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
                      sigma_a_identifiable=all(v[0] for v in verdicts),
                      sigma_a_identifiable_per_channel=tuple(v[0] for v in verdicts),
                      identifiability_reason="; ".join(f"channel {c}: {why}" for c, (_, why) in enumerate(verdicts)))
-    status, reasons = parameter_status(result, converged, extra_reasons=flat_why)
+    why = [("; ".join(x for x in (w, "its last step was cut short by the trust region (still moving)"
+                                   if cut_last[c] and not converged[c] else "") if x))
+           for c, w in enumerate(flat_why)]
+    status, reasons = parameter_status(result, converged, extra_reasons=why)
     # the fast model's bias in this scene: M / Q at the final accepted render point
     with np.errstate(all="ignore"):
         m_acc, _ = _fast_model(patches, e_t, eta_f, acc.theta, base_model)
@@ -745,6 +779,7 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
     extra = {**result.extra, "reference": [s.as_dict() for s in steps], "converged": all_conv,
              "converged_per_channel": converged.tolist(), "status": status, "status_reasons": reasons,
              "interval_propagation": propagation, "reference_derivatives": with_derivatives,
+             "last_step_cut_by_trust_region": cut_last.tolist(),
              "reference_iterations": len(steps) - 1, "model_bias": bias, "base_model": base_model,
              "seconds_total": time.perf_counter() - t_all}
     msg = result.message
@@ -753,5 +788,7 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
                 "x2, the slope assumed")
     if not all_conv:
         msg += (f"; the reference iteration did not converge in {len(steps) - 1} renders (last step "
-                f"{np.expm1(np.max(np.abs(last_step))):.1%}): estimates are weak, intervals cover the last step")
+                f"{np.expm1(np.max(np.abs(last_step))):.1%}"
+                + (", cut short by the trust region" if np.any(cut_last & ~converged) else "")
+                + "): estimates are weak, intervals cover the last step")
     return replace(result, model=model_name, message=msg, extra=extra)

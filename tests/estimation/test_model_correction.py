@@ -285,6 +285,25 @@ def test_settled_counts_steps_in_standard_errors():
     assert _settled(np.array([[0.0, 5.0]]), np.array([[0.05, np.inf]]))  # no bound on a non-identified sigma_a
 
 
+def test_a_step_cut_by_the_trust_region_is_not_settled():
+    """z25 of the zoo (an L-block under a sky): after a noisy ratio test the radius was 0.018 and the Gauss-Newton
+    step, cut to it, was 2 % -- below half a standard error, so the loop said "converged" while sigma_s' had moved
+    +74, +54, +28, +19 % over the renders. A step on the trust region's boundary is never a settled one; sigma_a
+    resting on its floor (non-identified) is no cut."""
+    from estimation.model_correction import _cut_by_trust_region
+
+    theta = np.log(np.array([[0.6, 0.12], [0.6, 0.12]]))
+    radius = np.full((2, 2), 0.018)
+    gn = np.array([[0.018, 0.004], [0.009, -0.004]])
+    box = np.stack([theta - 0.5, theta + 0.5], axis=1)
+    cut = _cut_by_trust_region(theta + gn, theta, box, gn, radius, np.array([True, True]))
+    assert cut.tolist() == [True, False]
+    # a corrected-model refit: on a face of its box is cut, inside is not, sigma_a at the 1e-7 floor is not
+    box[1, 0, 1] = np.log(1e-7)
+    fit = np.array([[theta[0, 0] + 0.5, theta[0, 1]], [theta[1, 0] + 0.1, np.log(1e-7)]])
+    assert _cut_by_trust_region(fit, theta, box, None, radius, np.array([False, False])).tolist() == [True, False]
+
+
 @pytest.mark.parametrize("map_slope", [0.6, -0.5, 0.0])
 def test_secant_slope_gives_the_refits_distance_to_the_fixed_point(map_slope):
     """For an affine map F(x) = x* + lam (x - x*) two render points give the slope s = lam - 1 of G = F - x
