@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+import tomli_w
 import trimesh
 
 from drivers.contracts import Polarization
@@ -42,19 +43,6 @@ def crater_mesh(subdivisions: int = 4) -> trimesh.Trimesh:
     return trimesh.Trimesh(u * r[:, None] * RADIUS_MM, s.faces, process=False)
 
 
-def _toml(doc: dict[str, Any]) -> str:
-    def val(v: Any) -> str:
-        return json.dumps(v) if not isinstance(v, bool) else ("true" if v else "false")
-    lines = [f"{k} = {val(v)}" for k, v in doc.items() if not isinstance(v, (dict, list))]
-    for k, v in doc.items():
-        if isinstance(v, dict):
-            lines += [f"\n[{k}]"] + [f"{kk} = {val(vv)}" for kk, vv in v.items()]
-        elif isinstance(v, list):
-            for item in v:
-                lines += [f"\n[[{k}]]"] + [f"{kk} = {val(vv)}" for kk, vv in item.items()]
-    return "\n".join(lines) + "\n"
-
-
 @pytest.fixture(scope="module")
 def scene_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """Image (fast renderer, shadows on, diffuse only), the 20k-face mesh and scene files."""
@@ -72,11 +60,11 @@ def scene_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
            "image": {"path": "img.exr", "specular_free": True},
            "point_lights": [{"position_mm": LIGHT_MM, "intensity": [INTENSITY]}],
            "material": {"eta": ETA}, "noise": {"sigma": [sigma]}}
-    (folder / "full.toml").write_text(_toml({**doc, "estimation": {}}))
-    (folder / "decimated.toml").write_text(_toml({**doc, "estimation": {"patches": PATCHES}}))
+    (folder / "full.toml").write_text(tomli_w.dumps({**doc, "estimation": {}}))
+    (folder / "decimated.toml").write_text(tomli_w.dumps({**doc, "estimation": {"patches": PATCHES}}))
     for name, est in (("zero", {"patches": 0}), ("negative", {"patches": -5}), ("many", {"patches": 6000}),
                       ("text", {"patches": "lots"}), ("typo", {"patchs": 512})):
-        (folder / f"bad_{name}.toml").write_text(_toml({**doc, "estimation": est}))
+        (folder / f"bad_{name}.toml").write_text(tomli_w.dumps({**doc, "estimation": est}))
     return folder
 
 

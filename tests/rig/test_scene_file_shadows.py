@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+import tomli_w
 
 from drivers.contracts import Polarization
 from estimation.camera import PinholeCamera
@@ -22,19 +23,6 @@ LIGHT_MM = [-40.0, 0.0, 100.0]
 INTENSITY = 2e4
 CAM = dict(width_px=80, height_px=60, fx_px=100.0, position_mm=[70.0, -40.0, 80.0], look_at_mm=[18.0, 0.0, 6.0],
            up=[0.0, 0.0, 1.0])
-
-
-def _toml(doc: dict[str, Any]) -> str:
-    def val(v: Any) -> str:
-        return json.dumps(v) if not isinstance(v, bool) else ("true" if v else "false")
-    lines = [f"{k} = {val(v)}" for k, v in doc.items() if not isinstance(v, (dict, list))]
-    for k, v in doc.items():
-        if isinstance(v, dict):
-            lines += [f"\n[{k}]"] + [f"{kk} = {val(vv)}" for kk, vv in v.items()]
-        elif isinstance(v, list):
-            for item in v:
-                lines += [f"\n[[{k}]]"] + [f"{kk} = {val(vv)}" for kk, vv in item.items()]
-    return "\n".join(lines) + "\n"
 
 
 @pytest.fixture(scope="module")
@@ -53,9 +41,9 @@ def scene_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
            "image": {"path": "img.exr", "specular_free": True},
            "point_lights": [{"position_mm": LIGHT_MM, "intensity": [INTENSITY]}],
            "material": {"eta": ETA}, "noise": {"sigma": [sigma]}}
-    (folder / "scene.toml").write_text(_toml(doc))
-    (folder / "scene_off.toml").write_text(_toml({**doc, "estimation": {"shadows": False}}))
-    (folder / "scene_bad.toml").write_text(_toml({**doc, "estimation": {"shadows": "yes"}}))
+    (folder / "scene.toml").write_text(tomli_w.dumps(doc))
+    (folder / "scene_off.toml").write_text(tomli_w.dumps({**doc, "estimation": {"shadows": False}}))
+    (folder / "scene_bad.toml").write_text(tomli_w.dumps({**doc, "estimation": {"shadows": "yes"}}))
     return folder
 
 
