@@ -41,7 +41,7 @@ from numpy.typing import NDArray
 
 from ..rays import RayEngine
 from ..shadows import is_convex_mesh
-from .geometry import Patches, _cos_to, occluded_from
+from .geometry import Patches, facing_in_frame, occluded_from
 
 Array = NDArray[np.float64]
 
@@ -174,13 +174,7 @@ def patches_from_decimated(mesh: Any, patch_mesh: Any, camera: Any, *,
     t0 = time.perf_counter()
     centers, own, snapped = snap_to_surface(engine, pc, pn, dev)
     sec["snap"] = time.perf_counter() - t0
-    cam_pos = np.asarray(getattr(camera, "center_mm", camera), dtype=np.float64).reshape(3)
-    cos_out = _cos_to(centers, pn, cam_pos)
-    visible = cos_out >= cos_min
-    if hasattr(camera, "project") and hasattr(camera, "width_px"):
-        uv, z = camera.project(centers)
-        visible &= (z > 0) & (uv[:, 0] >= -0.5) & (uv[:, 0] <= camera.width_px - 0.5) \
-            & (uv[:, 1] >= -0.5) & (uv[:, 1] <= camera.height_px - 0.5)
+    cam_pos, visible, cos_out = facing_in_frame(centers, pn, camera, cos_min)
     convex: bool | None = None
     if occlusion == "auto" or shadows == "auto":
         t0 = time.perf_counter()

@@ -78,6 +78,21 @@ def _cos_to(centers: Array, normals: Array, camera_position: Array) -> Array:
     return np.einsum("kc,kc->k", v, normals) / np.linalg.norm(v, axis=1)
 
 
+def facing_in_frame(centers: Array, normals: Array, camera: Any, cos_min: float
+                    ) -> tuple[Array, NDArray[np.bool_], Array]:
+    """(camera position, facing-and-in-frame flag, cos of the exit angle) of surface points (K, 3) with normals
+    (K, 3): facing = cos >= ``cos_min``; in frame = in front of the camera and projecting inside the image (when
+    ``camera`` can project; a bare position (3,) only gives the facing test)."""
+    cam_pos = np.asarray(getattr(camera, "center_mm", camera), dtype=np.float64).reshape(3)
+    cos_out = _cos_to(centers, normals, cam_pos)
+    visible = cos_out >= cos_min
+    if hasattr(camera, "project") and hasattr(camera, "width_px"):
+        uv, z = camera.project(centers)
+        visible &= (z > 0) & (uv[:, 0] >= -0.5) & (uv[:, 0] <= camera.width_px - 0.5) \
+            & (uv[:, 1] >= -0.5) & (uv[:, 1] <= camera.height_px - 0.5)
+    return cam_pos, visible, cos_out
+
+
 def occluded_from(engine: RayEngine, points_mm: Array, target_mm: Array, own_face: NDArray[np.intp]
                   ) -> NDArray[np.bool_]:
     """True where a face of ``engine``'s mesh blocks the segment from a surface point (K, 3) on face
@@ -114,13 +129,7 @@ def patches_from_mesh(mesh: Any, camera: Any, *, cos_min: float = float(np.cos(n
     centers = np.asarray(mesh.triangles_center, dtype=np.float64)
     normals = np.asarray(mesh.face_normals, dtype=np.float64)
     areas = np.asarray(mesh.area_faces, dtype=np.float64)
-    cam_pos = np.asarray(getattr(camera, "center_mm", camera), dtype=np.float64).reshape(3)
-    cos_out = _cos_to(centers, normals, cam_pos)
-    visible = cos_out >= cos_min
-    if hasattr(camera, "project") and hasattr(camera, "width_px"):
-        uv, z = camera.project(centers)
-        visible &= (z > 0) & (uv[:, 0] >= -0.5) & (uv[:, 0] <= camera.width_px - 0.5) \
-            & (uv[:, 1] >= -0.5) & (uv[:, 1] <= camera.height_px - 0.5)
+    cam_pos, visible, cos_out = facing_in_frame(centers, normals, camera, cos_min)
     for name, value in (("occlusion", occlusion), ("shadows", shadows)):
         if not (value == "auto" or isinstance(value, (bool, np.bool_))):
             raise ValueError(f"patches_from_mesh: {name} must be 'auto', True or False; got {value!r}")
