@@ -72,7 +72,10 @@ RELIEF_SPP = {"marble": 16, "apple": 16, "skimmilk": 16, "skin1": 64, "ketchup":
 
 
 def full_cases() -> list[Case]:
-    cases = [Case("sphere", m, size_px=32, spp=64, radius_mm=5.0, reference=True) for m in SPHERE_MATERIALS]
+    from rig.folder_reference import REFERENCE_ITERATIONS     # the CLI's default render budget
+
+    cases = [Case("sphere", m, size_px=32, spp=64, radius_mm=5.0, reference=True,
+                  reference_iterations=REFERENCE_ITERATIONS) for m in SPHERE_MATERIALS]
     cases += [Case("sphere", m, size_px=32, spp=64, radius_mm=25.0) for m in SPHERE_MATERIALS]
     cases += [Case("relief", m, size_px=40, spp=RELIEF_SPP[m], period_mm=p, pixel_mm=0.25)
               for p in RELIEF_PERIODS_MM for m in RELIEF_MATERIALS]

@@ -525,7 +525,8 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--reference-spp", type=_int_at_least(2), default=None, metavar="N",
                    help="--reference: paths per pixel of each reference render (default 64)")
     q.add_argument("--reference-iterations", type=_int_at_least(1), default=None, metavar="K",
-                   help="--reference: at most K reference renders (default 4)")
+                   help="--reference: at most K reference renders (default 8), plus a scan of 9 for a "
+                        "channel whose shortening is below 0.1 (a lens-like sphere)")
     q.add_argument("--reference-seed", type=_int_at_least(0), default=None, metavar="S",
                    help="--reference: seed of every reference render (default 1)")
     q.add_argument("--json", action="store_true", help="print the summary as JSON instead of a table")

@@ -44,7 +44,7 @@ __all__ = ["REFERENCE_SPP", "REFERENCE_ITERATIONS", "REFERENCE_SEED", "REFERENCE
            "renderable_camera", "implied_value_per_radiance_per_s", "render_exposure_s", "reference_corrected_sphere"]
 
 REFERENCE_SPP = 64
-REFERENCE_ITERATIONS = 4
+REFERENCE_ITERATIONS = 8
 REFERENCE_SEED = 1
 REFERENCE_REL_TOL = 0.02   # the stop rule used in tests/simulators/test_mc_frames_gradients.py
 FrameKey = tuple[str, str]
@@ -184,6 +184,7 @@ def reference_corrected_sphere(*, camera: PinholeCamera | OrthographicCamera, le
         "uncorrected": {k: np.asarray(v).tolist() for k, v in unc.items()},
         "steps": [s.as_dict() for s in res.steps], "iterations": res.iterations, "converged": res.converged,
         "message": res.message,
+        "scan": res.provenance.get("scan"),
         "reference": {"renderer": "simulators.scene.render_gradient_capture (render_mode "
                                   f"\"{render_mode}\", simulators.mc_capture)",
                       "spp": int(spp), "max_iterations": int(iterations), "seed": int(seed),

@@ -703,7 +703,7 @@ def test_reference_corrects_a_monte_carlo_skin1_sphere_end_to_end(tmp_path, caps
     corrected one and says the per-pixel maps are uncorrected; the table output shows both."""
     folder = write_simulated_capture(tmp_path / "mc", "mc")
     s = run_json(folder, capsys, "--reference", "--reference-spp", str(SIM_SPP), "--reference-seed",
-                 str(SIM_REF_SEED))
+                 str(SIM_REF_SEED), "--reference-iterations", "4")     # below the default 8: CI time
     ssp, sa = SKIN1
     D_true = 1 / (3 * (ssp + sa))
     r = s["diffusion_reference_corrected"]
