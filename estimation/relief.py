@@ -241,15 +241,39 @@ class ReliefRegion:
 # --------------------------------------------------------------------------------------------------------------
 # one window
 # --------------------------------------------------------------------------------------------------------------
-def _mtf_table(alpha_prime: float, eta: float, fdr: str) -> tuple[Array, Array]:
-    """M as a function of x = k l' for sigma_t' = 1 (x log-spaced; M(0) = 1)."""
+def _mtf_table(alpha_prime: float, eta: float, fdr: str, model: str = "dipole-jensen") -> tuple[Array, Array]:
+    """M as a function of x = k l' for sigma_t' = 1 (x log-spaced; M(0) = 1): the Jensen dipole's closed form
+    (:func:`estimation.dipole.hankel_transform`) or, ``model="mc-table"``, the zeroth-order Hankel transform of the
+    Monte Carlo table's profile (:mod:`estimation.mc_table`), M(x) = int J0(x rho) dC(rho) / C(inf), summed over the
+    table's cumulative C on 2400 log-spaced radii from 1e-3 to 1e4 transport mean free paths (the mass inside
+    1e-3 counted with J0 = 1)."""
     x = np.concatenate([[0.0], np.logspace(-4, 4, 1200)])
+    if model == "mc-table":
+        from scipy.special import j0
+
+        from .mc_table import default_table
+        rho = np.logspace(-3, 4, 2400)
+        C = default_table().cumulative(rho, alpha_prime, 1.0 - alpha_prime, eta, out_of_range="clip")
+        dC = np.diff(C)
+        mid = np.sqrt(rho[1:] * rho[:-1])
+        M = (C[0] + j0(x[:, None] * mid[None, :]) @ dC) / C[-1]
+        return x, np.asarray(M, dtype=np.float64)
     R = hankel_transform(x, alpha_prime, 1.0 - alpha_prime, eta, fdr=fdr)
     return x, np.asarray(R / R[0], dtype=np.float64)
 
 
+def _alpha_from_rd(R_d: float, eta: float, fdr: str, model: str) -> float:
+    """alpha' of a half-space of total diffuse reflectance R_d: the Jensen dipole's (science.md sec. 1) or the Monte
+    Carlo table's (:meth:`estimation.mc_table.McProfileTable.invert_albedo`)."""
+    if model == "mc-table":
+        from .mc_table import default_table
+        return float(default_table().invert_albedo(R_d, eta, out_of_range="clip"))
+    return float(reduced_albedo_from_total_reflectance(R_d, eta, fdr=fdr))
+
+
 def _fit_one(Dn: Array, Tn: Array, comps: tuple[int, int], pixel_mm: float, alpha: float, eta: float,
-             l_grid: Array, margin_px: int, fdr: str, confidence: float) -> tuple[float, float, float, bool, bool]:
+             l_grid: Array, margin_px: int, fdr: str, confidence: float, model: str = "dipole-jensen"
+             ) -> tuple[float, float, float, bool, bool]:
     """(l' best, lo, hi, lo_at_bound, hi_at_bound) for one channel of one window (arrays without NaN)."""
     h, w = Tn.shape[:2]
     win = np.zeros((h, w))
@@ -263,7 +287,7 @@ def _fit_one(Dn: Array, Tn: Array, comps: tuple[int, int], pixel_mm: float, alph
     kx = 2 * np.pi * np.fft.fftfreq(W2, d=pixel_mm)
     kk = np.sqrt(ky[:, None] ** 2 + kx[None, :] ** 2)
     data = [Dn[..., c] - Dn[..., c].mean() for c in comps]
-    xs, ms = _mtf_table(alpha, eta, fdr)
+    xs, ms = _mtf_table(alpha, eta, fdr, model)
     cost = np.empty(l_grid.size)
     for i, lp in enumerate(l_grid):
         M = np.interp(kk * lp, xs, ms)
@@ -317,7 +341,8 @@ def fit_relief_windows(diffuse_normals: ArrayLike, true_normals: ArrayLike, albe
                        valid: ArrayLike | None = None, min_valid_fraction: float = 0.9,
                        margin_px: int | None = None, confidence: float = 0.95, model_bias_rel: float = 0.3,
                        albedo_rel_uncertainty: float = 0.1, weak_ratio: float = 4.0, min_relief_snr: float = 2.0,
-                       min_relief_rad: float = 2e-3, fdr: str = "fit", exit_norm: float | None = None) -> ReliefFit:
+                       min_relief_rad: float = 2e-3, fdr: str = "fit", exit_norm: float | None = None,
+                       model: str = "dipole-jensen") -> ReliefFit:
     """Fit l' per window and channel from the blur of ``diffuse_normals`` (H, W, 3 channels, 3 xyz) against
     ``true_normals`` (H, W, 3) (known geometry, or the specular normals of the same capture); ``albedo``
     (H, W, 3) is R_d (exit Fresnel divided out, as :func:`estimation.gradients.compute_maps` reports it);
@@ -393,17 +418,15 @@ def fit_relief_windows(diffuse_normals: ArrayLike, true_normals: ArrayLike, albe
                 dn = d / np.linalg.norm(d, axis=-1, keepdims=True)
                 dn = np.where(ok[..., None], dn, np.nanmean(dn[ok], axis=0))
                 dnoise[i, j, c] = normal_noise_rad(dn, comps)
-                alpha = float(reduced_albedo_from_total_reflectance(a_med, eta, fdr=fdr))
+                alpha = _alpha_from_rd(a_med, eta, fdr, model)
                 if not relief_ok:
                     _put_unknown(ints, i, j, c, full_lo, full_hi, a_med, eta, fdr)
                     continue
                 best, lo, hi, lo_b, hi_b = _fit_one(dn, t, comps, pixel_mm, alpha, eta, l_grid, margin, fdr,
-                                                    confidence)
+                                                    confidence, model)
                 lo_w, hi_w = lo / (1.0 + model_bias_rel), hi * (1.0 + model_bias_rel)
-                a_lo = float(reduced_albedo_from_total_reflectance(a_med / (1 + albedo_rel_uncertainty), eta,
-                                                                   fdr=fdr))
-                a_hi = float(reduced_albedo_from_total_reflectance(min(a_med * (1 + albedo_rel_uncertainty),
-                                                                       0.999), eta, fdr=fdr))
+                a_lo = _alpha_from_rd(a_med / (1 + albedo_rel_uncertainty), eta, fdr, model)
+                a_hi = _alpha_from_rd(min(a_med * (1 + albedo_rel_uncertainty), 0.999), eta, fdr, model)
                 point = parameters_from_l_prime(alpha, best)
                 iv = _derived_interval(alpha, a_lo, a_hi, lo_w, hi_w)
                 for k in RELIEF_PARAMS:
