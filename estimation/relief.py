@@ -7,7 +7,8 @@ Jensen et al. 2001 for R^(k): :func:`estimation.dipole.hankel_transform`). :func
 fits one length per channel to a whole map; this module fits it per window of a stated size and over a region and
 says how much the data constrain it:
 
-- the reduced albedo alpha' comes from the window's median R_d (``albedo``, exit Fresnel divided out), the reduced
+- the reduced albedo alpha' comes from the window's median R_d (``albedo``, exit Fresnel divided out) times the
+  exit normalization c(eta) = 1 - 2 FM1_ext(eta) (0.939 at eta 1.3; :func:`exit_normalization`), the reduced
   mean free path l' = 1/sigma_t' from the blur; then sigma_s' = alpha'/l', sigma_a = (1 - alpha')/l',
   sigma_tr = sqrt(3 sigma_a sigma_t'), l_d = 1/sigma_tr, D = l'/3 (science.md sec. 1);
 - M depends on k only through k l' for a given alpha' (the profile scales with l'), so it is tabulated once per
@@ -22,6 +23,16 @@ says how much the data constrain it:
   whose normal-field variance is not above its noise: a flat region carries no information about a length),
   "weak" (the profile interval reaches a bound of the l' grid -- only a one-sided bound -- or spans more than a
   factor ``weak_ratio``), "ok". Unknown windows report NaN values and the whole grid range as their interval.
+
+**Exit normalization.** The map's convention divides the cross-polarized value by F_t(eta, n.v)/pi and the
+transmitted irradiance E_t. By reciprocity a half-space under uniform radiance L, seen from v, sends
+L_o = L F_t(eta, v) R_d(v) (R_d(v): the total diffuse reflectance per unit power entering for collimated light from
+v; the dipole's and the Monte Carlo table's R_d at normal incidence), while E_t = c pi L. So the map reads
+R_d(v) / c, not R_d: 6.5 % high at eta 1.3, which at alpha' ~ 0.999 moves 1 - alpha' by a factor ~3 and l_d by
+~1.7. Measured with the project's Monte Carlo renderer (simulators.mc, 200k photons per channel, cosine-weighted
+incidence, exit cos >= 0.9; docs/model-error.md "Issue 16 acceptance, measured"): pi L_o / (F_t E_t) over the
+table's R_d = 1.060-1.064 (+-0.005) for marble, apple, skimmilk and skin1, every channel. The fit therefore
+inverts alpha' from c x the map's R_d (``exit_normalization``; 1.0 restores the old behaviour).
 
 The noise of a normal field is estimated from its second differences (robust MAD; a smooth relief contributes
 little to them): sigma^2 = (1.4826 MAD)^2 / 6 per component.
@@ -41,7 +52,7 @@ from scipy import stats
 from .dipole import hankel_transform, reduced_albedo_from_total_reflectance
 
 __all__ = ["RELIEF_PARAMS", "STATUS_CODES", "ReliefFit", "ReliefRegion", "SeedComparison", "compare_seed",
-           "fit_relief_windows", "summarize_relief", "normal_noise_rad", "parameters_from_l_prime", "normals_from_height"]
+           "exit_normalization", "fit_relief_windows", "summarize_relief", "normal_noise_rad", "parameters_from_l_prime", "normals_from_height"]
 
 Array = NDArray[np.float64]
 RELIEF_PARAMS: tuple[str, ...] = ("l_prime_mm", "l_d_mm", "D_mm", "sigma_s_prime_per_mm", "sigma_a_per_mm",
@@ -69,6 +80,15 @@ def normal_noise_rad(normals: ArrayLike, comps: tuple[int, int] | None = None) -
         return float("nan")
     mad = float(np.median(np.abs(v - np.median(v))))
     return 1.4826 * mad / np.sqrt(6.0)
+
+
+def exit_normalization(eta: float) -> float:
+    """c(eta) = 1 - 2 FM1_ext(eta) = int F_t(eta, mu) 2 mu dmu (0.9389 at eta 1.3, 0.9082 at 1.5): the fraction of
+    uniform radiance a smooth dielectric transmits (E_t / E) and the normalization of the exit radiance F_t/(pi c)
+    (pbrt's SeparableBSSRDF::Sw; :func:`estimation.mc_table.exit_radiance_factor`). The R_d map of
+    :func:`estimation.gradients.compute_maps` reads R_d / c on a half-space (module docstring)."""
+    from .fresnel import fresnel_moment
+    return float(1.0 - 2.0 * fresnel_moment(eta, 1, side="external"))
 
 
 def parameters_from_l_prime(alpha_prime: ArrayLike, l_prime_mm: ArrayLike) -> dict[str, Array]:
@@ -221,15 +241,39 @@ class ReliefRegion:
 # --------------------------------------------------------------------------------------------------------------
 # one window
 # --------------------------------------------------------------------------------------------------------------
-def _mtf_table(alpha_prime: float, eta: float, fdr: str) -> tuple[Array, Array]:
-    """M as a function of x = k l' for sigma_t' = 1 (x log-spaced; M(0) = 1)."""
+def _mtf_table(alpha_prime: float, eta: float, fdr: str, model: str = "dipole-jensen") -> tuple[Array, Array]:
+    """M as a function of x = k l' for sigma_t' = 1 (x log-spaced; M(0) = 1): the Jensen dipole's closed form
+    (:func:`estimation.dipole.hankel_transform`) or, ``model="mc-table"``, the zeroth-order Hankel transform of the
+    Monte Carlo table's profile (:mod:`estimation.mc_table`), M(x) = int J0(x rho) dC(rho) / C(inf), summed over the
+    table's cumulative C on 2400 log-spaced radii from 1e-3 to 1e4 transport mean free paths (the mass inside
+    1e-3 counted with J0 = 1)."""
     x = np.concatenate([[0.0], np.logspace(-4, 4, 1200)])
+    if model == "mc-table":
+        from scipy.special import j0
+
+        from .mc_table import default_table
+        rho = np.logspace(-3, 4, 2400)
+        C = default_table().cumulative(rho, alpha_prime, 1.0 - alpha_prime, eta, out_of_range="clip")
+        dC = np.diff(C)
+        mid = np.sqrt(rho[1:] * rho[:-1])
+        M = (C[0] + j0(x[:, None] * mid[None, :]) @ dC) / C[-1]
+        return x, np.asarray(M, dtype=np.float64)
     R = hankel_transform(x, alpha_prime, 1.0 - alpha_prime, eta, fdr=fdr)
     return x, np.asarray(R / R[0], dtype=np.float64)
 
 
+def _alpha_from_rd(R_d: float, eta: float, fdr: str, model: str) -> float:
+    """alpha' of a half-space of total diffuse reflectance R_d: the Jensen dipole's (science.md sec. 1) or the Monte
+    Carlo table's (:meth:`estimation.mc_table.McProfileTable.invert_albedo`)."""
+    if model == "mc-table":
+        from .mc_table import default_table
+        return float(default_table().invert_albedo(R_d, eta, out_of_range="clip"))
+    return float(reduced_albedo_from_total_reflectance(R_d, eta, fdr=fdr))
+
+
 def _fit_one(Dn: Array, Tn: Array, comps: tuple[int, int], pixel_mm: float, alpha: float, eta: float,
-             l_grid: Array, margin_px: int, fdr: str, confidence: float) -> tuple[float, float, float, bool, bool]:
+             l_grid: Array, margin_px: int, fdr: str, confidence: float, model: str = "dipole-jensen"
+             ) -> tuple[float, float, float, bool, bool]:
     """(l' best, lo, hi, lo_at_bound, hi_at_bound) for one channel of one window (arrays without NaN)."""
     h, w = Tn.shape[:2]
     win = np.zeros((h, w))
@@ -243,7 +287,7 @@ def _fit_one(Dn: Array, Tn: Array, comps: tuple[int, int], pixel_mm: float, alph
     kx = 2 * np.pi * np.fft.fftfreq(W2, d=pixel_mm)
     kk = np.sqrt(ky[:, None] ** 2 + kx[None, :] ** 2)
     data = [Dn[..., c] - Dn[..., c].mean() for c in comps]
-    xs, ms = _mtf_table(alpha, eta, fdr)
+    xs, ms = _mtf_table(alpha, eta, fdr, model)
     cost = np.empty(l_grid.size)
     for i, lp in enumerate(l_grid):
         M = np.interp(kk * lp, xs, ms)
@@ -297,11 +341,13 @@ def fit_relief_windows(diffuse_normals: ArrayLike, true_normals: ArrayLike, albe
                        valid: ArrayLike | None = None, min_valid_fraction: float = 0.9,
                        margin_px: int | None = None, confidence: float = 0.95, model_bias_rel: float = 0.3,
                        albedo_rel_uncertainty: float = 0.1, weak_ratio: float = 4.0, min_relief_snr: float = 2.0,
-                       min_relief_rad: float = 2e-3, fdr: str = "fit") -> ReliefFit:
+                       min_relief_rad: float = 2e-3, fdr: str = "fit", exit_norm: float | None = None,
+                       model: str = "dipole-jensen") -> ReliefFit:
     """Fit l' per window and channel from the blur of ``diffuse_normals`` (H, W, 3 channels, 3 xyz) against
     ``true_normals`` (H, W, 3) (known geometry, or the specular normals of the same capture); ``albedo``
     (H, W, 3) is R_d (exit Fresnel divided out, as :func:`estimation.gradients.compute_maps` reports it);
-    ``pixel_mm`` the pixel footprint on the surface; ``valid`` (H, W) or (H, W, 3) usable pixels (NaN pixels are
+    ``pixel_mm`` the pixel footprint on the surface; ``exit_norm``: the factor applied to the map's R_d before
+    inverting alpha' (default :func:`exit_normalization` (eta); 1.0: the map's R_d as is); ``valid`` (H, W) or (H, W, 3) usable pixels (NaN pixels are
     never used; a window needs ``min_valid_fraction`` of them, the rest are filled with the window mean).
 
     Windows of ``window_px`` (>= 16) every ``stride_px`` (default: ``window_px``, non-overlapping) with a Hann
@@ -332,6 +378,7 @@ def fit_relief_windows(diffuse_normals: ArrayLike, true_normals: ArrayLike, albe
     if v.ndim == 2:
         v = np.repeat(v[..., None], 3, axis=-1)
     finite_t = np.isfinite(Tn).all(-1)
+    c_exit = exit_normalization(eta) if exit_norm is None else float(exit_norm)
     l_grid = np.exp(np.linspace(np.log(pixel_mm / 4.0), np.log(2.0 * win_px * pixel_mm), _N_GRID))
     rows, cols = _window_origins(H, win_px, stride), _window_origins(W, win_px, stride)
     ny, nx = len(rows), len(cols)
@@ -364,24 +411,22 @@ def fit_relief_windows(diffuse_normals: ArrayLike, true_normals: ArrayLike, albe
                 a_w = alb[sl][..., c].astype(np.float64)
                 ok = ok_t & v[sl][..., c] & np.isfinite(d).all(-1) & np.isfinite(a_w)
                 # unknown defaults: the whole searched range as interval
-                a_med = float(np.median(a_w[ok])) if ok.any() else float("nan")
+                a_med = c_exit * float(np.median(a_w[ok])) if ok.any() else float("nan")
                 if ok.mean() < min_valid_fraction or not (0 < a_med < 1):
                     _put_unknown(ints, i, j, c, full_lo, full_hi, a_med, eta, fdr)
                     continue
                 dn = d / np.linalg.norm(d, axis=-1, keepdims=True)
                 dn = np.where(ok[..., None], dn, np.nanmean(dn[ok], axis=0))
                 dnoise[i, j, c] = normal_noise_rad(dn, comps)
-                alpha = float(reduced_albedo_from_total_reflectance(a_med, eta, fdr=fdr))
+                alpha = _alpha_from_rd(a_med, eta, fdr, model)
                 if not relief_ok:
                     _put_unknown(ints, i, j, c, full_lo, full_hi, a_med, eta, fdr)
                     continue
                 best, lo, hi, lo_b, hi_b = _fit_one(dn, t, comps, pixel_mm, alpha, eta, l_grid, margin, fdr,
-                                                    confidence)
+                                                    confidence, model)
                 lo_w, hi_w = lo / (1.0 + model_bias_rel), hi * (1.0 + model_bias_rel)
-                a_lo = float(reduced_albedo_from_total_reflectance(a_med / (1 + albedo_rel_uncertainty), eta,
-                                                                   fdr=fdr))
-                a_hi = float(reduced_albedo_from_total_reflectance(min(a_med * (1 + albedo_rel_uncertainty),
-                                                                       0.999), eta, fdr=fdr))
+                a_lo = _alpha_from_rd(a_med / (1 + albedo_rel_uncertainty), eta, fdr, model)
+                a_hi = _alpha_from_rd(min(a_med * (1 + albedo_rel_uncertainty), 0.999), eta, fdr, model)
                 point = parameters_from_l_prime(alpha, best)
                 iv = _derived_interval(alpha, a_lo, a_hi, lo_w, hi_w)
                 for k in RELIEF_PARAMS:
@@ -394,6 +439,7 @@ def fit_relief_windows(diffuse_normals: ArrayLike, true_normals: ArrayLike, albe
             "confidence": confidence, "model_bias_rel": model_bias_rel,
             "albedo_rel_uncertainty": albedo_rel_uncertainty, "weak_ratio": weak_ratio,
             "min_relief_snr": min_relief_snr, "min_relief_rad": min_relief_rad, "eta": eta, "fdr": fdr,
+            "exit_normalization": c_exit,
             "method": "relief blur, profile likelihood per window (estimation.relief)"}
     return ReliefFit(win_px, stride, float(pixel_mm), origins, vals, ints, status, rms, noise, dnoise,
                      (float(full_lo), float(full_hi)), prov)

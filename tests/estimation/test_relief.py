@@ -95,3 +95,28 @@ def test_bad_arguments(kw, msg) -> None:
     args.update(kw)
     with pytest.raises(ValueError, match=msg):
         fit_relief_windows(**args)
+
+
+def test_exit_normalization_scales_the_albedo_before_inverting() -> None:
+    """The map's R_d convention reads R_d / c on a half-space (reciprocity; measured 1.060-1.064 x the Monte Carlo
+    table's R_d, benchmarks/relief_albedo.py): the fit inverts alpha' from c x the map's R_d, c(1.3) = 0.9389 = the
+    transmitted fraction of uniform light tau0 / pi; exit_norm=1.0 keeps the map's value."""
+    from estimation.dipole import reduced_albedo_from_total_reflectance
+    from estimation.fresnel import fresnel_transmittance
+    from estimation.relief import exit_normalization
+
+    assert exit_normalization(1.3) == pytest.approx(0.9389, abs=2e-4)
+    mu = (np.arange(20000) + 0.5) / 20000                 # midpoint rule for int F_t(mu) 2 mu dmu
+    assert exit_normalization(1.5) == pytest.approx(float(np.mean(fresnel_transmittance(1.5, mu) * 2 * mu)), rel=1e-4)
+    assert exit_normalization(1.0) == pytest.approx(1.0, abs=1e-9)
+    y, x = np.mgrid[0:32, 0:32] * 0.25
+    h = 0.06 * np.sin(2 * np.pi * x / 2.5) + 0.06 * np.sin(2 * np.pi * y / 2.5)
+    R = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+    tn = normals_from_height(h, 0.25, R)
+    dn = np.repeat(tn[:, :, None, :], 3, axis=2)
+    alb = np.full((32, 32, 3), 0.9)
+    c = exit_normalization(ETA)
+    for norm, rd in ((None, 0.9 * c), (1.0, 0.9)):
+        fit = fit_relief_windows(dn, tn, alb, 0.25, ETA, window_px=32, exit_norm=norm)
+        want = float(reduced_albedo_from_total_reflectance(rd, ETA))
+        np.testing.assert_allclose(fit.values["alpha_prime"][0, 0], want, rtol=1e-9)
