@@ -2,13 +2,13 @@
 16-ray packet queries (``rtcIntersect16``), for :class:`estimation.rays.RayEngine`'s ``"embree"`` backend.
 
 Why not ``embreex``'s own classes: its ``TriangleMesh`` copies the vertices and faces into Embree's buffers
-element by element through Python indexing (~0.12-0.3 s for a 100k-face mesh on the shared 2-core machine: most
-of the engine's build time, Embree's own BVH build being ~0.02-0.05 s), and ``EmbreeScene.run`` casts one ray
-per ``rtcIntersect1`` call. Here Embree reads our arrays in place (``rtcSetSharedGeometryBuffer``) and rays go in
-packets of 16 (``rtcIntersect16``; coherent camera rays share traversal work), one ``ctypes`` call per packet.
-The Embree library is the one ``embreex`` ships (its wheel vendors ``libembree4``), so nothing new is installed;
-where it cannot be found or fails the known-answer check, :class:`estimation.rays.RayEngine` falls back to
-``embreex``'s classes.
+element by element through Python indexing (0.08-0.3 s for a 100k-face mesh on the shared 2-core machine: most
+of the engine's build time, Embree's own BVH build being 0.04-0.08 s there; docs/visibility.md). Here Embree reads
+our arrays in place (``rtcSetSharedGeometryBuffer``) and rays go in packets of 16 (``rtcIntersect16``), one
+``ctypes`` call per packet (a call per ray would cost more than the ray). The Embree library is the one
+``embreex`` ships (its wheel vendors ``libembree4``), so nothing new is installed; where it cannot be loaded or
+fails a known-answer check (one ray against one triangle, :func:`_self_test`), :class:`estimation.rays.RayEngine`
+falls back to ``embreex``'s classes.
 
 Layouts and constants: Embree 4 API reference (``rtcore_ray.h``, ``rtcore_buffer.h``, ``rtcore_geometry.h``):
 ``RTCRay16`` is twelve 16-float/uint arrays (org_x, org_y, org_z, tnear, dir_x, dir_y, dir_z, time, tfar, mask,
@@ -74,8 +74,22 @@ def _library() -> Any:
         if not device:
             continue
         _lib, _device = lib, device
-        return lib
+        try:
+            ok = _self_test()
+        except (OSError, ValueError):
+            ok = False
+        if ok:
+            return lib
+        _lib, _device = False, None
     return None
+
+
+def _self_test() -> bool:
+    """A ray down the z axis onto the triangle z = 2 of a one-triangle scene, a second one beside it, and 15
+    padding lanes: face 0 at t = 3 (the hit record's layout as assumed), -1 for the miss."""
+    scene = Embree4Scene(np.array([[-1.0, -1.0, 2.0], [3.0, -1.0, 2.0], [-1.0, 3.0, 2.0]]), np.array([[0, 1, 2]]))
+    prim, tfar = scene.intersect(np.array([[0.0, 0.0, 5.0], [9.0, 9.0, 5.0]]), np.array([[0.0, 0.0, -1.0]] * 2))
+    return bool(prim[0] == 0 and prim[1] == -1 and abs(float(tfar[0]) - 3.0) < 1e-5 and np.isinf(tfar[1]))
 
 
 class Embree4Scene:
