@@ -292,6 +292,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="a ~26k-face mesh, fewer rays and pixels (< 30 s)")
     ap.add_argument("--repeats", type=int, default=None)
     ap.add_argument("--json", type=str, default=None, help="write the figures to this file ('-' = stdout)")
+    ap.add_argument("--end-to-end-only", action="store_true", help="section 4 only (rig estimate single-image)")
+    ap.add_argument("--runs", type=int, default=None, help="section 4: independent runs (default 2; --quick 1)")
     a = ap.parse_args(argv)
     quick = a.quick
     repeats = a.repeats or (2 if quick else 3)
@@ -306,46 +308,52 @@ def main(argv: list[str] | None = None) -> int:
     say(f"# mesh: {len(mesh.faces)} faces (watertight body + handle), camera {w} x {h}; load average "
         f"{load[0]:.2f} {load[1]:.2f}; Embree {'available' if embree_available() else 'MISSING (numba BVH only)'}; "
         f"NUMBA_NUM_THREADS={os.environ.get('NUMBA_NUM_THREADS', 'default')}")
-    r = rates(mesh, 200_000 if quick else 1_000_000, repeats)
-    if "embree_raw_rays_per_s" in r:
-        say(f"rays/s  Embree raw {r['embree_raw_rays_per_s'] / 1e6:.2f} M | RayEngine (embree) "
-            f"{r['engine_rays_per_s'] / 1e6:.2f} M = {r['engine_over_raw']:.2f} x raw (target >= 0.5) | trimesh "
-            f"intersects_first (faces only) {r['trimesh_first_rays_per_s'] / 1e6:.2f} M, intersects_location "
-            f"(faces + points) {r['trimesh_location_rays_per_s'] / 1e6:.2f} M | numba BVH "
-            f"{r['bvh_rays_per_s'] / 1e6:.2f} M  ({r['rays']} rays, {r['hit_fraction']:.0%} hit, same face as raw "
-            f"{r['same_face_as_raw']:.4%})")
-    else:
-        say(f"rays/s  numba BVH {r['bvh_rays_per_s'] / 1e6:.2f} M (Embree not installed: no raw rate)")
-    v = visibility(mesh, patch_mesh, cam, 10_000, repeats, 40 if quick else 60)
-    say(f"pixel map ({v['pixels']} px, {v['faces']} faces): ray cast {v['pixel_map_s']:.3f} s | painter's order "
-        f"{v['painters_s']:.3f} s ({v['painters_pixels_differing']} of {v['object_pixels']} object px differ: "
-        f"{v['painters_pixels_hidden_face']} show a face > 0.3 mm behind the visible surface, "
-        f"{v['painters_pixels_other_face'] - v['painters_pixels_hidden_face']} a neighbouring face, "
-        f"{v['painters_pixels_object_mismatch']} object/background) | every pixel x every face "
-        f"{v['pixel_brute_force_s_extrapolated']:.0f} s "
-        f"(extrapolated; agrees {v['pixel_brute_force_agrees']:.1%}) -> "
-        f"{v['pixel_brute_force_s_extrapolated'] / v['pixel_map_s']:.0f}x")
-    say(f"patches + visibility ({v['patches']} patches, own mesh, occlusion on): {v['patches_s']:.3f} s | brute force "
-        f"{v['patches_brute_force_s_extrapolated']:.1f} s (extrapolated) -> "
-        f"{v['patches_brute_force_s_extrapolated'] / v['patches_s']:.0f}x")
-    say(f"occlusion of {v['occlusion_patches']} patch centres vs all {v['faces']} faces: "
-        f"{v['occlusion_full_mesh_s']:.3f} s "
-        f"(+ engine build {v['engine_build_s']:.3f} s) | brute force "
-        f"{v['occlusion_full_mesh_brute_force_s_extrapolated']:.0f} s (extrapolated; agrees "
-        f"{v['occlusion_agrees_with_brute_force']:.1%}) -> "
-        f"{v['occlusion_full_mesh_brute_force_s_extrapolated'] / v['occlusion_full_mesh_s']:.0f}x")
-    say(f"visibility total (pixel map + build + patch occlusion): {v['visibility_s']:.3f} s | brute force "
-        f"{v['visibility_brute_force_s_extrapolated']:.0f} s (extrapolated) -> "
-        f"{v['visibility_brute_force_s_extrapolated'] / v['visibility_s']:.0f}x; "
-        f"run {time.perf_counter() - t_start:.1f} s")
-    sh = shadows(mesh, patch_mesh, cam, 10_000, repeats)
-    say(f"shadows: point light, {sh['point_shadow_rays']} shadow rays from face centres of the {len(mesh.faces)}-face "
-        f"mesh ({sh['point_shadowed_fraction']:.1%} shadowed): {sh['point_shadow_s']:.3f} s | sky + sun 64 x 128 on "
-        f"{sh['env_patches']} patches: {sh['env_rays']} rays ({sh['env_bright_pixels']} bright px) "
-        f"{sh['env_shadows_s']:.2f} s (unshadowed irradiance alone {sh['env_unshadowed_s']:.2f} s)")
+    r: dict[str, Any] = {}
+    v: dict[str, Any] = {}
+    sh: dict[str, Any] = {}
+    if not a.end_to_end_only:
+        r = rates(mesh, 200_000 if quick else 1_000_000, repeats)
+        if "embree_raw_rays_per_s" in r:
+            say(f"rays/s  Embree raw {r['embree_raw_rays_per_s'] / 1e6:.2f} M | RayEngine (embree) "
+                f"{r['engine_rays_per_s'] / 1e6:.2f} M = {r['engine_over_raw']:.2f} x raw (target >= 0.5) | trimesh "
+                f"intersects_first (faces only) {r['trimesh_first_rays_per_s'] / 1e6:.2f} M, intersects_location "
+                f"(faces + points) {r['trimesh_location_rays_per_s'] / 1e6:.2f} M | numba BVH "
+                f"{r['bvh_rays_per_s'] / 1e6:.2f} M  ({r['rays']} rays, {r['hit_fraction']:.0%} hit, same face as raw "
+                f"{r['same_face_as_raw']:.4%})")
+        else:
+            say(f"rays/s  numba BVH {r['bvh_rays_per_s'] / 1e6:.2f} M (Embree not installed: no raw rate)")
+        v = visibility(mesh, patch_mesh, cam, 10_000, repeats, 40 if quick else 60)
+        say(f"pixel map ({v['pixels']} px, {v['faces']} faces): ray cast {v['pixel_map_s']:.3f} s | painter's order "
+            f"{v['painters_s']:.3f} s ({v['painters_pixels_differing']} of {v['object_pixels']} object px differ: "
+            f"{v['painters_pixels_hidden_face']} show a face > 0.3 mm behind the visible surface, "
+            f"{v['painters_pixels_other_face'] - v['painters_pixels_hidden_face']} a neighbouring face, "
+            f"{v['painters_pixels_object_mismatch']} object/background) | every pixel x every face "
+            f"{v['pixel_brute_force_s_extrapolated']:.0f} s "
+            f"(extrapolated; agrees {v['pixel_brute_force_agrees']:.1%}) -> "
+            f"{v['pixel_brute_force_s_extrapolated'] / v['pixel_map_s']:.0f}x")
+        say(f"patches + visibility ({v['patches']} patches, own mesh, occlusion on): {v['patches_s']:.3f} s | "
+            f"brute force "
+            f"{v['patches_brute_force_s_extrapolated']:.1f} s (extrapolated) -> "
+            f"{v['patches_brute_force_s_extrapolated'] / v['patches_s']:.0f}x")
+        say(f"occlusion of {v['occlusion_patches']} patch centres vs all {v['faces']} faces: "
+            f"{v['occlusion_full_mesh_s']:.3f} s "
+            f"(+ engine build {v['engine_build_s']:.3f} s) | brute force "
+            f"{v['occlusion_full_mesh_brute_force_s_extrapolated']:.0f} s (extrapolated; agrees "
+            f"{v['occlusion_agrees_with_brute_force']:.1%}) -> "
+            f"{v['occlusion_full_mesh_brute_force_s_extrapolated'] / v['occlusion_full_mesh_s']:.0f}x")
+        say(f"visibility total (pixel map + build + patch occlusion): {v['visibility_s']:.3f} s | brute force "
+            f"{v['visibility_brute_force_s_extrapolated']:.0f} s (extrapolated) -> "
+            f"{v['visibility_brute_force_s_extrapolated'] / v['visibility_s']:.0f}x; "
+            f"run {time.perf_counter() - t_start:.1f} s")
+        sh = shadows(mesh, patch_mesh, cam, 10_000, repeats)
+        say(f"shadows: point light, {sh['point_shadow_rays']} shadow rays from face centres of the "
+            f"{len(mesh.faces)}-face mesh ({sh['point_shadowed_fraction']:.1%} shadowed): {sh['point_shadow_s']:.3f} s "
+            f"| sky + sun 64 x 128 on "
+            f"{sh['env_patches']} patches: {sh['env_rays']} rays ({sh['env_bright_pixels']} bright px) "
+            f"{sh['env_shadows_s']:.2f} s (unshadowed irradiance alone {sh['env_unshadowed_s']:.2f} s)")
     import tempfile
     with tempfile.TemporaryDirectory() as tmp:
-        e = end_to_end(mesh, cam, Path(tmp), 10_000 if not quick else 2_500, 1 if quick else 2)
+        e = end_to_end(mesh, cam, Path(tmp), 10_000 if not quick else 2_500, a.runs or (1 if quick else 2))
     for i, run in enumerate(e["runs"]):
         st = run["stages_s"]
         dec = run["decimation"]
@@ -362,6 +370,11 @@ def main(argv: list[str] | None = None) -> int:
             f"{dec['deviation_mm_median']:.3f} mm, 99 % {dec['deviation_mm_p99']:.3f} mm, {dec['not_snapped']} not "
             f"snapped)")
     best = e["best"]
+    if a.end_to_end_only:
+        say(f"end to end, {e['faces']}-face mesh at {best['patches']} patches: best {best['total_s']:.2f} s, "
+            f"visibility + shadows {best['visibility_and_shadows_s'] / best['total_s']:.0%} (acceptance: < 5 s, "
+            f"< 25 %); load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+        return 0
     old_path = (best["stages_s"].get("fit", 0.0) + best["load_s"] + v["visibility_brute_force_s_extrapolated"])
     say(f"end to end, {e['faces']}-face mesh at {best['patches']} patches: best {best['total_s']:.2f} s, visibility + "
         f"shadows {best['visibility_and_shadows_s'] / best['total_s']:.0%} (acceptance: < 5 s, < 25 %) | old path "

@@ -7,12 +7,15 @@ single-image method (:func:`estimation.single_image.patches_from_mesh`), the sim
 Backends (``RayEngine(..., backend=...)``):
 
 - ``"embree"`` (default when the ``embreex`` package imports): Intel Embree's BVH (Wald et al., "Embree: a kernel
-  framework for efficient CPU ray tracing", ACM TOG 33(4), 2014) through ``embreex``, the binding behind trimesh's
-  ray interface, with trimesh's set-up (``trimesh.ray.ray_pyembree``: the mesh shifted and scaled to a ~100-unit
-  box, because Embree works in float32: distances come out within ~1e-6 of the mesh size of float64 ones). The
-  scene is queried directly, with Embree's distance output, rather than through ``RayMeshIntersector``, whose
-  call giving faces and hit points (``intersects_location``) ran at 0.51 x Embree's raw rate, this at 0.69 x
-  (benchmarks/meshes.py, docs/visibility.md).
+  framework for efficient CPU ray tracing", ACM TOG 33(4), 2014), with trimesh's set-up (``trimesh.ray.
+  ray_pyembree``: the mesh shifted and scaled to a ~100-unit box, because Embree works in float32: distances come
+  out within ~1e-6 of the mesh size of float64 ones). ``embree_binding="direct"`` (the default where it works):
+  the Embree 4 library ``embreex`` ships, called through ``ctypes`` (:mod:`estimation._embree4`: the scene reads
+  our float32 arrays in place, rays go in packets of 16) — ``embreex``'s own ``TriangleMesh`` copies the mesh
+  element by element through Python indexing, most of the engine's build time. ``"embreex"`` (the fallback where
+  the library cannot be loaded): ``embreex``'s ``EmbreeScene``, one ray per call, with Embree's distance output
+  rather than through trimesh's ``RayMeshIntersector`` (whose faces-and-points call ran at 0.51 x Embree's raw
+  rate, this at 0.69 x; benchmarks/meshes.py, docs/visibility.md).
 - ``"bvh"``: this module's own median-split bounding-volume hierarchy traversed by a numba kernel with the
   Moller-Trumbore test (Moller & Trumbore, "Fast, minimum storage ray-triangle intersection", J. Graphics Tools
   2(1), 1997), in float64: the fallback where Embree is not installed, and an independent check of it.
@@ -24,6 +27,8 @@ from __future__ import annotations
 import numpy as np
 import numpy.typing as npt
 from numba import njit
+
+from ._embree4 import Embree4Scene
 
 FloatArray = npt.NDArray[np.float64]
 IndexArray = npt.NDArray[np.intp]
@@ -46,7 +51,9 @@ class RayEngine:
     """First-hit and occlusion queries of rays against one triangle mesh (units of the vertices, e.g. mm).
 
     ``vertices`` (V, 3), ``faces`` (F, 3) vertex indices. ``backend``: ``"auto"`` (Embree if ``embreex``
-    imports, else the numba BVH), ``"embree"`` or ``"bvh"``. Building the acceleration structure costs about as
+    imports, else the numba BVH), ``"embree"`` or ``"bvh"``. ``embree_binding`` (Embree only): ``"auto"`` (Embree 4
+    through ctypes, else ``embreex``'s classes), ``"direct"`` or ``"embreex"`` (module docstring); the one used is
+    ``self.embree_binding``. Building the acceleration structure costs about as
     much as a few hundred thousand rays; build the engine once per mesh and query it with many rays at once.
 
     >>> import trimesh
@@ -56,7 +63,8 @@ class RayEngine:
     4.0
     """
 
-    def __init__(self, vertices: npt.ArrayLike, faces: npt.ArrayLike, *, backend: str = "auto") -> None:
+    def __init__(self, vertices: npt.ArrayLike, faces: npt.ArrayLike, *, backend: str = "auto",
+                 embree_binding: str = "auto") -> None:
         v = np.ascontiguousarray(vertices, dtype=np.float64)
         f = np.ascontiguousarray(faces, dtype=np.int64)
         if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or f.shape[1] != 3:
@@ -69,6 +77,8 @@ class RayEngine:
             raise ValueError("RayEngine: vertices must be finite")
         if backend == "auto":
             backend = "embree" if embree_available() else "bvh"
+        if embree_binding not in ("auto", "direct", "embreex"):
+            raise ValueError(f"RayEngine: embree_binding must be 'auto', 'direct' or 'embreex'; got {embree_binding!r}")
         if backend not in BACKENDS:
             raise ValueError(f"RayEngine: backend must be 'auto' or one of {', '.join(BACKENDS)}; got {backend!r}")
         if backend == "embree" and not embree_available():
@@ -80,18 +90,27 @@ class RayEngine:
         self.face_normals: FloatArray = n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)  # (F, 3)
         self.scale: float = float(np.linalg.norm(v.max(axis=0) - v.min(axis=0)))   # bounding-box diagonal
         if backend == "embree":
-            from embreex import rtcore_scene
-            from embreex.mesh_construction import TriangleMesh
-
             # as trimesh.ray.ray_pyembree._EmbreeWrap: shift to the box corner, scale to a ~100-unit box
             self._origin = v.min(axis=0)
             self._center = 0.5 * (v.min(axis=0) + v.max(axis=0))
             self._radius = 0.5 * self.scale
             self._to_box = 100.0 / max(self.scale, 1e-300)
-            self._scene = rtcore_scene.EmbreeScene()
-            TriangleMesh(scene=self._scene, vertices=((v - self._origin) * self._to_box).astype(np.float32),
-                         indices=f.astype(np.int32))
-            self._scene.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32))   # commit (build) now
+            v_box = ((v - self._origin) * self._to_box).astype(np.float32)
+            self._direct: Embree4Scene | None = None
+            if embree_binding in ("auto", "direct"):
+                try:          # Embree 4 through ctypes: shared buffers, 16-ray packets (estimation._embree4)
+                    self._direct = Embree4Scene(v_box, f)
+                except OSError:
+                    if embree_binding == "direct":
+                        raise
+            if self._direct is None:   # embreex's own classes: per-element copy, one ray per call
+                from embreex import rtcore_scene
+                from embreex.mesh_construction import TriangleMesh
+
+                self._scene = rtcore_scene.EmbreeScene()
+                TriangleMesh(scene=self._scene, vertices=v_box, indices=f.astype(np.int32))
+                self._scene.run(np.zeros((1, 3), np.float32), np.ones((1, 3), np.float32))   # commit (build) now
+            self.embree_binding: str = "direct" if self._direct is not None else "embreex"
         else:
             self._bvh = _build_bvh(tri, _LEAF_SIZE)
 
@@ -121,11 +140,14 @@ class RayEngine:
             else:
                 t0 = None
             ob += self._center - self._origin
-            o32 = np.empty(ob.shape, np.float32)
-            np.multiply(ob, self._to_box, out=o32, casting="unsafe")
-            res = self._scene.run(o32, d.astype(np.float32), output=1)
-            face = res["primID"].astype(np.intp)
-            t = np.multiply(res["tfar"], 1.0 / self._to_box, dtype=np.float64)
+            ob *= self._to_box
+            if self._direct is not None:        # packs the rays into float32 packets itself
+                prim, tfar = self._direct.intersect(ob, d)
+            else:
+                res = self._scene.run(ob.astype(np.float32), d.astype(np.float32), output=1)
+                prim, tfar = res["primID"], res["tfar"]
+            face = prim.astype(np.intp)
+            t = np.multiply(tfar, 1.0 / self._to_box, dtype=np.float64)
             if t0 is not None:
                 t += t0
             t[face < 0] = np.inf

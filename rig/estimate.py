@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
+from numba import njit
 
 from drivers.camera.raw import load_linear
 
@@ -284,37 +285,85 @@ def pixel_faces(mesh: Any, camera: Any, *, engine: Any = None, points: np.ndarra
     ``mesh.faces`` unless an ``engine`` of the same mesh is given). A first hit on the back of a face (an open
     mesh seen from behind, or from inside) is -1 too: no outer surface is observed there. ``points``: an (H, W, 3)
     float array that receives the surface point each pixel sees (NaN where -1), from the same rays. With a
-    :class:`estimation.camera.PinholeCamera` and the whole mesh in front of it, only the pixels inside the bounding
-    box of the projected vertices (+1 px) cast rays (a triangle projects inside its vertices' box).
+    :class:`estimation.camera.PinholeCamera` and the whole mesh in front of it, rays are cast only from the pixels
+    that can see a face (:func:`_pinhole_candidates`: the union of the projected faces' bounding boxes, 1 px wider);
+    the others cannot, so the map is the same as casting every pixel.
     """
-    from estimation.rays import RayEngine
-
     from estimation.camera import PinholeCamera
+    from estimation.rays import RayEngine
 
     if engine is None:
         engine = RayEngine(np.asarray(mesh.vertices, float), np.asarray(mesh.faces))
-    origins, dirs = camera.pixel_rays()
-    h, w = origins.shape[:2]
-    rows, cols = slice(0, h), slice(0, w)
-    if isinstance(camera, PinholeCamera):   # only pixels inside the projected vertices' box can see the mesh
-        uv, z = camera.project(engine.vertices)
-        if np.all(z > 0) and np.all(np.isfinite(uv)):
-            lo = np.floor(uv.min(axis=0)).astype(int) - 1
-            hi = np.ceil(uv.max(axis=0)).astype(int) + 2
-            cols = slice(int(np.clip(lo[0], 0, w)), int(np.clip(hi[0], 0, w)))
-            rows = slice(int(np.clip(lo[1], 0, h)), int(np.clip(hi[1], 0, h)))
-    face = np.full((h, w), -1, dtype=np.intp)
-    dist = np.full((h, w), np.inf)
-    if rows.stop > rows.start and cols.stop > cols.start:
-        face[rows, cols], dist[rows, cols] = engine.first_hit(origins[rows, cols], dirs[rows, cols])
-    hit = face >= 0
-    back = np.einsum("ij,ij->i", engine.face_normals[face[hit]], dirs[hit]) >= 0
-    face[hit] = np.where(back, -1, face[hit])
+    h, w = camera.height_px, camera.width_px
+    face = np.full((h, w), -1, dtype=np.int32)
     if points is not None:
-        on = face >= 0
         points[...] = np.nan
-        points[on] = origins[on] + dist[on][:, None] * dirs[on]
-    return face.astype(np.int32)
+    cand = _pinhole_candidates(camera, engine) if isinstance(camera, PinholeCamera) else None
+    if cand is None:
+        origins, dirs = camera.pixel_rays()
+        sel: Any = np.ones((h, w), bool)
+        o, d = origins.reshape(-1, 3), dirs.reshape(-1, 3)
+    else:
+        rows, cols = cand
+        sel = (rows, cols)
+        # the pinhole's pixel rays (PinholeCamera.pixel_rays) at the candidate pixels only
+        r_cam = camera.R
+        d = np.multiply.outer((cols - camera.cx_px) / camera.fx_px, r_cam[0])
+        d += np.multiply.outer((rows - camera.cy_px) / camera.fy_px, r_cam[1])
+        d += r_cam[2]
+        d /= np.sqrt(np.einsum("ij,ij->i", d, d))[:, None]
+        o = camera.C
+    if len(d) == 0:
+        return face
+    f, t = engine.first_hit(o, d)
+    hit = f >= 0
+    front = np.zeros(len(f), bool)
+    front[hit] = np.einsum("ij,ij->i", engine.face_normals[f[hit]], d[hit]) < 0
+    f = np.where(front, f, -1)
+    if cand is None:
+        face[...] = f.reshape(h, w)
+    else:
+        face[sel] = f
+    if points is not None:
+        on = np.flatnonzero(front)
+        p = np.asarray(o, float).reshape(-1, 3)
+        p = p[on] if len(p) > 1 else p
+        if cand is None:
+            points.reshape(-1, 3)[on] = p + t[on, None] * d[on]
+        else:
+            points[rows[on], cols[on]] = p + t[on, None] * d[on]
+    return face
+
+
+def _pinhole_candidates(camera: Any, engine: Any) -> tuple[np.ndarray, np.ndarray] | None:
+    """Pixels (rows, cols) whose centre can lie in the projection of a face of the engine's mesh: the union of
+    the projected faces' bounding boxes widened by 1 px (a point inside a triangle lies inside its vertices' box;
+    the margin covers float rounding). None where a vertex is behind the camera or not finite (then every pixel
+    is cast)."""
+    uv, z = camera.project(engine.vertices)
+    if not (np.all(z > 0) and np.all(np.isfinite(uv))):
+        return None
+    h, w = camera.height_px, camera.width_px
+    cover = _face_box_cover(np.ascontiguousarray(uv), engine.faces, w, h)
+    c0, r0 = np.clip(np.floor(uv.min(axis=0)).astype(int) - 1, 0, [w, h])
+    rows, cols = np.nonzero(cover[r0:, c0:])
+    return rows + r0, cols + c0
+
+
+@njit(cache=True)
+def _face_box_cover(uv: np.ndarray, faces: np.ndarray, w: int, h: int) -> np.ndarray:  # pragma: no cover - compiled
+    """(h, w) bool: True at pixels (r, c) with c, r inside a face's projected box [floor(min) - 1, ceil(max) + 1]."""
+    cover = np.zeros((h, w), np.bool_)
+    for k in range(faces.shape[0]):
+        a, b, c = faces[k, 0], faces[k, 1], faces[k, 2]
+        c0 = max(int(np.floor(min(uv[a, 0], min(uv[b, 0], uv[c, 0])))) - 1, 0)
+        c1 = min(int(np.ceil(max(uv[a, 0], max(uv[b, 0], uv[c, 0])))) + 2, w)
+        r0 = max(int(np.floor(min(uv[a, 1], min(uv[b, 1], uv[c, 1])))) - 1, 0)
+        r1 = min(int(np.ceil(max(uv[a, 1], max(uv[b, 1], uv[c, 1])))) + 2, h)
+        for r in range(r0, r1):
+            for col in range(c0, c1):
+                cover[r, col] = True
+    return cover
 
 
 def sample_at_points(img: np.ndarray, var: np.ndarray, valid: np.ndarray, camera, points_mm: np.ndarray,

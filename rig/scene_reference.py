@@ -107,15 +107,10 @@ def _lights(scene: Any, frame: ReferenceFrame, center_mm: Array, size_mm: float)
     return out
 
 
-def _has_point_like_lights(scene: Any) -> bool:
-    return bool(scene.point_lights or scene.directional_lights)
-
-
 def check_reference_scene(scene: Any) -> Any:
     """Refuse what the Monte Carlo reference cannot render (:class:`rig.scene_spec.SceneFileError` naming the
     key); return the :class:`simulators.mc.Mesh` of the scene's surface (world frame)."""
     from simulators.mc import Mesh
-    from simulators.mc.shapes import MAX_CONNECTION_PLANES, refracted_point_lights_supported
 
     from .scene_spec import SceneFileError
 
@@ -125,17 +120,7 @@ def check_reference_scene(scene: Any) -> Any:
         raise SceneFileError(file, "mesh.path", "a closed (watertight) mesh for the model mc-table+reference: the "
                              "Monte Carlo reference needs the surface to bound the medium (close the holes, or "
                              "use model mc-table without the reference)", str(scene.mesh.path.name))
-    shape = Mesh(mesh)
-    eta = scene.material.eta
-    if (_has_point_like_lights(scene) and abs(eta - 1.0) >= 1e-12
-            and not refracted_point_lights_supported(shape.geometry())):
-        key = "point_lights" if scene.point_lights else "directional_lights"
-        raise SceneFileError(file, key, f"no point or directional lights with model mc-table+reference on this "
-                             f"non-convex mesh at eta = {eta:g}: the Monte Carlo renderer connects point lights "
-                             "through a refracting (eta != 1) non-convex boundary only for meshes of at most "
-                             f"{MAX_CONNECTION_PLANES} distinct face planes; light the scene with an environment map "
-                             "([environment], any mesh), set material.eta = 1, or use model mc-table without the "
-                             "reference", f"{scene.mesh.path.name} (not convex, too many face planes)")
+    shape = Mesh(mesh)   # point lights through any mesh at any eta (simulators.mc.nee; issue 17)
     if scene.point_lights:
         inside = shape.contains(np.array([p.position_mm for p in scene.point_lights]))
         if inside.any():

@@ -212,7 +212,7 @@ def led_environment(led_positions_mm: npt.ArrayLike, emission: npt.ArrayLike, *,
 
 def _point_lights_supported(obj: Any, shape: Any) -> bool:
     """Point lights work for every shape at eta = 1 and, at eta != 1, for analytic shapes, convex meshes and
-    non-convex meshes of few face planes (refracted connections face by face, :mod:`simulators.mc.nee`)."""
+    non-convex meshes of any size (refracted connections with shadow rays, :mod:`simulators.mc.nee`)."""
     from simulators.mc import Mesh
     from simulators.mc.shapes import refracted_point_lights_supported
 

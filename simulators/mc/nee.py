@@ -44,11 +44,12 @@ import math
 from numba import njit
 
 from .optics import fresnel_r, hg_phase, orthonormal_basis, refract
-from .shapes import (BOX, FACE_TABLE_START, HALF_SPACE, MESH, PLANE_TABLE, SLAB, SPHERE, nearest_hit,
-                     surface_distance)
+from .shapes import (BOX, BVH_CONNECTIONS, FACE_TABLE_START, HALF_SPACE, MESH, PLANE_TABLE, SLAB, SPHERE,
+                     nearest_hit, surface_distance)
 
 __all__ = ["point_light_nee", "light_contribution", "min_inside_length", "plane_connection", "sphere_connections",
-           "sphere_min_inside_length", "mesh_connections", "mesh_min_inside_length", "nonconvex_mesh_connections"]
+           "sphere_min_inside_length", "mesh_connections", "mesh_min_inside_length", "nonconvex_mesh_connections",
+           "bvh_mesh_connections", "connection_radius", "CUTOFF"]
 
 _FD_STEP = 1e-6
 
@@ -426,6 +427,134 @@ def nonconvex_mesh_connections(prm, nbox, nidx, tris, eps_t, stack, x, y, z, lx,
     return tot
 
 
+#: relative weight exp(-sigma_t R) below which a refracted connection is dropped by
+#: :func:`bvh_mesh_connections` (sets its search radius R, :func:`connection_radius`)
+CUTOFF = 1e-6
+
+
+@njit(cache=True, error_model="numpy")
+def connection_radius(sigma_t):
+    """Search radius R [mm] = ln(1 / CUTOFF) / sigma_t (inf for sigma_t <= 0)."""
+    if not sigma_t > 0.0:
+        return math.inf
+    return math.log(1.0 / CUTOFF) / sigma_t
+
+
+@njit(cache=True, error_model="numpy")
+def _triangle_candidate(v0x, v0y, v0z, e1x, e1y, e1z, e2x, e2y, e2z, nx, ny, nz, x, y, z, lx, ly, lz):
+    """Can the triangle (v0, v0 + e1, v0 + e2; outward unit normal n) hold a refracted connection x <- b <- L? Its
+    plane must face the light with x on its inner side, and the segment F..P that contains b (F the foot of L,
+    P the projection of x on the plane) must not lie entirely beyond one edge (as :func:`_face_candidate` for
+    the convex faces; no tolerance: the barycentric test of b decides)."""
+    h = (lx - v0x) * nx + (ly - v0y) * ny + (lz - v0z) * nz
+    dep = (v0x - x) * nx + (v0y - y) * ny + (v0z - z) * nz
+    if not (h > 0.0 and dep >= 0.0):
+        return False
+    fx, fy, fz = lx - h * nx, ly - h * ny, lz - h * nz
+    px, py, pz = x + dep * nx, y + dep * ny, z + dep * nz
+    # edges a -> a + e in counter-clockwise order about n; inward normal n x e
+    for ax, ay, az, ex, ey, ez in ((v0x, v0y, v0z, e1x, e1y, e1z),
+                                   (v0x + e1x, v0y + e1y, v0z + e1z, e2x - e1x, e2y - e1y, e2z - e1z),
+                                   (v0x + e2x, v0y + e2y, v0z + e2z, -e2x, -e2y, -e2z)):
+        mx, my, mz = ny * ez - nz * ey, nz * ex - nx * ez, nx * ey - ny * ex
+        if ((fx - ax) * mx + (fy - ay) * my + (fz - az) * mz < 0.0
+                and (px - ax) * mx + (py - ay) * my + (pz - az) * mz < 0.0):
+            return False
+    return True
+
+
+@njit(cache=True, error_model="numpy")
+def bvh_mesh_connections(prm, nbox, nidx, tris, eps_t, stack, x, y, z, lx, ly, lz, eta, sigma_t, g,
+                         dcx, dcy, dcz, radius):
+    """Sum over the refracted connections x <- b <- L through a NON-CONVEX closed mesh of any size with
+    |x - b| <= ``radius`` of p(cos) F_t exp(-sigma_t |x - b|) / J (per unit intensity). ``stack``: its first half
+    for the BVH descent, its second half for the shadow rays.
+
+    :func:`nonconvex_mesh_connections` solves Snell's law once per distinct face plane: exact, but O(planes) per
+    scattering vertex, and a scanned mesh has one plane per triangle. Here the candidates are the triangles of the
+    BVH leaves within ``radius`` of x (boxes farther away are not opened):
+
+    - a connection with |x - b| > R weighs less than exp(-sigma_t R) of the same connection through the surface
+      at x; light_contribution passes R = :func:`connection_radius` = ln(1 / CUTOFF) / sigma_t (13.8 mean free
+      paths at CUTOFF = 1e-6), dropping those: the design's one approximation, a truncation of far connections at
+      a stated relative weight (nothing is dropped when the ball holds the whole mesh);
+    - per candidate triangle whose plane faces the light with x on its inner side, :func:`plane_connection` gives
+      the plane's one stationary point b; it is a connection iff b lies in that triangle (barycentric test without
+      tolerance: b on an edge shared by coplanar triangles is a measure-zero event), |x - b| <= R, and the two
+      shadow rays of :func:`nonconvex_mesh_connections` confirm it (x -> b meets the boundary first at b, on a face
+      of that orientation; b -> L meets nothing).
+
+    Every connection the all-planes path finds within R is found here (its b lies in a triangle of its plane
+    within R of x), none twice (b lies in one triangle). Like the all-planes path it misses light that crosses the
+    boundary more than once before it first scatters (module docstring). Cost: the BVH descent over the ball plus
+    one plane solution per triangle in it and two BVH rays per connection found: local, not O(faces), once the
+    ball is smaller than the mesh (tests/simulators/test_mc_bvh_connections.py compares both paths)."""
+    tot = 0.0
+    tol_t = 1e5 * eps_t          # as nonconvex_mesh_connections: eps_t = 1e-12 x scale
+    nudge = 1e3 * eps_t
+    r2 = radius * radius
+    ray_stack = stack[stack.shape[0] // 2:]
+    stack = stack[:stack.shape[0] // 2]
+    stack[0] = 0
+    sp = 1
+    while sp > 0:
+        sp -= 1
+        node = stack[sp]
+        # squared distance from x to the node box
+        qx = min(max(x, nbox[node, 0]), nbox[node, 3]) - x
+        qy = min(max(y, nbox[node, 1]), nbox[node, 4]) - y
+        qz = min(max(z, nbox[node, 2]), nbox[node, 5]) - z
+        d2 = qx * qx + qy * qy + qz * qz
+        if d2 > r2:
+            continue
+        cnt = nidx[node, 3]
+        if cnt == 0:
+            if sp + 2 <= stack.shape[0]:
+                stack[sp] = nidx[node, 0]
+                stack[sp + 1] = nidx[node, 1]
+                sp += 2
+            continue
+        first = nidx[node, 2]
+        for k in range(first, first + cnt):
+            v0x, v0y, v0z = tris[k, 0], tris[k, 1], tris[k, 2]
+            nx, ny, nz = tris[k, 9], tris[k, 10], tris[k, 11]
+            e1x, e1y, e1z = tris[k, 3], tris[k, 4], tris[k, 5]
+            e2x, e2y, e2z = tris[k, 6], tris[k, 7], tris[k, 8]
+            if not _triangle_candidate(v0x, v0y, v0z, e1x, e1y, e1z, e2x, e2y, e2z, nx, ny, nz, x, y, z, lx, ly, lz):
+                continue
+            ok, bx, by, bz, J, c1, l_in = plane_connection(v0x, v0y, v0z, nx, ny, nz, x, y, z, lx, ly, lz, eta)
+            if not (ok and J > 0.0 and 0.0 < l_in <= radius):
+                continue
+            # b in this triangle (barycentric coordinates in the plane)
+            wx, wy, wz = bx - v0x, by - v0y, bz - v0z
+            d00 = e1x * e1x + e1y * e1y + e1z * e1z
+            d01 = e1x * e2x + e1y * e2y + e1z * e2z
+            d11 = e2x * e2x + e2y * e2y + e2z * e2z
+            d20 = wx * e1x + wy * e1y + wz * e1z
+            d21 = wx * e2x + wy * e2y + wz * e2z
+            den = d00 * d11 - d01 * d01
+            if not den > 0.0:
+                continue
+            u = (d11 * d20 - d01 * d21) / den
+            v = (d00 * d21 - d01 * d20) / den
+            if u < 0.0 or v < 0.0 or u + v > 1.0:
+                continue
+            # the shadow rays of nonconvex_mesh_connections: inside x -> b, outside b -> L
+            ux, uy, uz = (bx - x) / l_in, (by - y) / l_in, (bz - z) / l_in
+            t, hx, hy, hz = nearest_hit(MESH, prm, nbox, nidx, tris, x, y, z, ux, uy, uz, eps_t, ray_stack)
+            if not (abs(t - l_in) <= tol_t and hx * nx + hy * ny + hz * nz >= 1.0 - 1e-8):
+                continue
+            ox, oy, oz = bx + nudge * nx, by + nudge * ny, bz + nudge * nz
+            vx, vy, vz = lx - ox, ly - oy, lz - oz
+            dl = math.sqrt(vx * vx + vy * vy + vz * vz)
+            t2, _a, _b, _c = nearest_hit(MESH, prm, nbox, nidx, tris, ox, oy, oz, vx / dl, vy / dl, vz / dl,
+                                         eps_t, ray_stack)
+            if t2 >= dl:
+                tot += _connection_term(x, y, z, bx, by, bz, J, c1, l_in, nx, ny, nz, eta, sigma_t, g,
+                                        dcx, dcy, dcz)
+    return tot
+
+
 @njit(cache=True, error_model="numpy")
 def min_inside_length(kind, prm, x, y, z, lx, ly, lz, eta):
     """Lower bound on the length inside the medium of any connection from x to the light (for roulette)."""
@@ -448,6 +577,8 @@ def min_inside_length(kind, prm, x, y, z, lx, ly, lz, eta):
     if kind == SPHERE:
         return sphere_min_inside_length(prm[0], prm[1], prm[2], prm[3], x, y, z, lx, ly, lz)
     if kind == MESH:
+        if prm[1] == BVH_CONNECTIONS:   # no plane list: 0 bounds every connection's inside length
+            return 0.0
         # inf: no face can connect (q = 0); a plane table (non-convex) has no edges: min depth over the planes
         # that face L with x inside, still <= |x - b| of every connection
         return mesh_min_inside_length(prm, x, y, z, lx, ly, lz)
@@ -523,6 +654,9 @@ def light_contribution(kind, prm, nbox, nidx, tris, eps_t, stack, x, y, z, dcx, 
         if prm[1] == PLANE_TABLE:
             return nonconvex_mesh_connections(prm, nbox, nidx, tris, eps_t, stack, x, y, z, lx, ly, lz, eta,
                                               sigma_t, g, dcx, dcy, dcz)
+        if prm[1] == BVH_CONNECTIONS:
+            return bvh_mesh_connections(prm, nbox, nidx, tris, eps_t, stack, x, y, z, lx, ly, lz, eta, sigma_t, g,
+                                        dcx, dcy, dcz, connection_radius(sigma_t))
         return mesh_connections(prm, x, y, z, lx, ly, lz, eta, sigma_t, g, dcx, dcy, dcz)
     return 0.0
 

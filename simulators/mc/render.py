@@ -11,8 +11,9 @@ symmetric). The two kinds of light are estimated without bias by:
   sampled again) when it hits it, so inter-reflection through the outside is exact.
 - point lights: next-event estimation at every collision (:mod:`.nee`): straight-line connections with exact
   occlusion for eta = 1; refracted connections through smooth analytic boundaries (half-space, slab, box,
-  sphere), convex triangle meshes, and non-convex meshes of at most ``MAX_CONNECTION_PLANES`` face planes
-  (shadow rays inside and outside, :func:`.nee.nonconvex_mesh_connections`) for eta != 1. A point light is never
+  sphere), convex triangle meshes, and non-convex meshes (shadow rays inside and outside; every face plane,
+  :func:`.nee.nonconvex_mesh_connections`, up to ``MAX_CONNECTION_PLANES`` planes, else the triangles within the
+  connection radius found by the BVH, :func:`.nee.bvh_mesh_connections`) for eta != 1. A point light is never
   hit by an escaping walk, so nothing is counted twice.
 
 Estimator per pixel: ``spp`` independent paths, each with its own random stream keyed by (seed, channel, pixel,
@@ -44,7 +45,7 @@ from .lights import kernel_lights
 from .media import Medium
 from .optics import fresnel_r, reflect, refract
 from .rng import stream, uniform
-from .shapes import (MAX_CONNECTION_PLANES, MESH, SPHERE, STACK_SIZE, Shape, nearest_hit,
+from .shapes import (MESH, SPHERE, STACK_SIZE, Shape, nearest_hit,
                      refracted_point_lights_supported)
 from .walk import EXITED, TRUNCATED, walk
 
@@ -322,8 +323,9 @@ def render(shape: Shape, media: Medium | Sequence[Medium], camera: Any, lights: 
     refracting non-convex meshes, whose connections are not supported, nor refracting meshes of more than
     :data:`ENV_NEE_MAX_FLAT_FACES` flat faces, whose connections cost a scan of every face: there escaping paths
     find them). Raises ValueError for a point light inside the
-    object, for media with different eta, or for point lights with eta != 1 through a non-convex mesh of more than
-    :data:`.shapes.MAX_CONNECTION_PLANES` distinct face planes (the connections are searched plane by plane).
+    object, or for media with different eta. Point lights with eta != 1 through a non-convex mesh: every face
+    plane is searched up to :data:`.shapes.MAX_CONNECTION_PLANES` planes, beyond that the triangles within the
+    connection radius found by the BVH (:func:`.nee.bvh_mesh_connections`).
     """
     ms = _media_list(media)
     etas = {m.eta for m in ms}
@@ -337,12 +339,7 @@ def render(shape: Shape, media: Medium | Sequence[Medium], camera: Any, lights: 
     if len(kl[0].positions_mm):
         if np.any(shape.contains(kl[0].positions_mm)):
             raise ValueError("point lights must lie outside the object")
-        if abs(eta - 1.0) >= 1e-12 and not refracted_point_lights_supported(geo):
-            raise ValueError(f"point lights through a refractive (eta != 1) non-convex mesh boundary need at most "
-                             f"{MAX_CONNECTION_PLANES} distinct face planes (the refracted connections are searched "
-                             "plane by plane with shadow rays), and this non-convex mesh has more (a scanned mesh: "
-                             "one plane per triangle); use eta = 1, a convex mesh, a simpler (planar-faced) mesh, "
-                             "or distant lights")
+        assert refracted_point_lights_supported(geo)       # every shape since issue 17 (BVH connections)
     origins, dirs = camera.pixel_rays()
     h, w = camera.height_px, camera.width_px
     o = np.ascontiguousarray(origins.reshape(-1, 3), dtype=np.float64)

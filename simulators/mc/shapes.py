@@ -25,7 +25,7 @@ from numba import njit
 
 __all__ = ["HALF_SPACE", "SLAB", "SPHERE", "BOX", "MESH", "Geometry", "HalfSpace", "Slab", "Sphere", "Box",
            "Mesh", "Shape", "nearest_hit", "surface_distance", "convex_polyhedron", "convex_face_table",
-           "FACE_TABLE_START", "STACK_SIZE", "plane_table", "MAX_CONNECTION_PLANES", "PLANE_TABLE",
+           "FACE_TABLE_START", "STACK_SIZE", "plane_table", "MAX_CONNECTION_PLANES", "PLANE_TABLE", "BVH_CONNECTIONS",
            "refracted_point_lights_supported"]
 
 HALF_SPACE, SLAB, SPHERE, BOX, MESH = 0, 1, 2, 3, 4
@@ -282,10 +282,13 @@ def convex_face_table(vertices: npt.ArrayLike, faces: npt.ArrayLike, normal_tol:
 
 
 #: params[1] of a mesh's Geometry: 0 = convex face table (or none), PLANE_TABLE = the distinct face planes of a
-#: non-convex mesh (:func:`plane_table`), NO_PLANE_TABLE = non-convex with more than MAX_CONNECTION_PLANES planes
-PLANE_TABLE, NO_PLANE_TABLE = 1.0, -1.0
-#: refracted point-light connections through a non-convex mesh try every face plane (two BVH rays per candidate):
-#: beyond this many distinct planes (a scanned mesh: one per triangle) they are not offered
+#: non-convex mesh (:func:`plane_table`), BVH_CONNECTIONS = non-convex with more than MAX_CONNECTION_PLANES planes
+#: (refracted connections from candidate triangles found by the BVH, :func:`simulators.mc.nee.bvh_mesh_connections`)
+PLANE_TABLE, BVH_CONNECTIONS = 1.0, -1.0
+NO_PLANE_TABLE = BVH_CONNECTIONS       # the former name (before issue 17's BVH connections)
+#: refracted point-light connections through a non-convex mesh of at most this many distinct face planes try
+#: every plane (:func:`simulators.mc.nee.nonconvex_mesh_connections`); beyond it (a scanned mesh: one plane per
+#: triangle) the candidates are the triangles near the scattering vertex, found by the BVH
 MAX_CONNECTION_PLANES: int = 512
 
 
@@ -327,9 +330,10 @@ def plane_table(vertices: npt.ArrayLike, faces: npt.ArrayLike, normal_tol: float
 
 
 def refracted_point_lights_supported(geometry: Geometry) -> bool:
-    """Can :func:`simulators.mc.render` connect point lights through this shape's boundary at eta != 1? Analytic
-    shapes, convex meshes, and non-convex meshes of at most :data:`MAX_CONNECTION_PLANES` face planes."""
-    return geometry.kind != MESH or geometry.convex or geometry.params[1] == PLANE_TABLE
+    """Can :func:`simulators.mc.render` connect point lights through this shape's boundary at eta != 1? Every
+    shape since issue 17: analytic shapes, convex meshes (face table), non-convex meshes of at most
+    :data:`MAX_CONNECTION_PLANES` face planes (plane table) and larger ones (:data:`BVH_CONNECTIONS`)."""
+    return geometry.kind != MESH or geometry.convex or geometry.params[1] in (PLANE_TABLE, BVH_CONNECTIONS)
 
 
 @dataclass(frozen=True)
@@ -361,7 +365,7 @@ class Mesh:
                 prm = convex_face_table(v, f)
             else:
                 table = plane_table(v, f)
-                prm = table if table is not None else [0.0, NO_PLANE_TABLE]
+                prm = table if table is not None else [0.0, BVH_CONNECTIONS]
             self._cache["g"] = _geometry(MESH, prm, scale, convex, bvh)
         return self._cache["g"]
 

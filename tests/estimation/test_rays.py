@@ -134,3 +134,26 @@ def test_auto_falls_back_to_the_numba_bvh_without_embreex() -> None:
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
                           cwd=str(__import__("pathlib").Path(__file__).resolve().parents[2]))
     assert proc.returncode == 0, proc.stderr
+
+
+def test_direct_embree_binding_equals_embreex_classes() -> None:
+    """The ctypes binding (estimation._embree4: shared buffers, 16-ray packets) is the default where it loads and
+    answers as embreex's EmbreeScene does on the same float32 scene: same faces, distances to float32 rounding;
+    ray counts that are not a multiple of the packet size (padding lanes) included."""
+    if not embree_available():
+        pytest.skip("embreex not installed")
+    mesh = _two_meshes()[0]
+    direct = RayEngine(mesh.vertices, mesh.faces)
+    assert direct.embree_binding == "direct"
+    classes = RayEngine(mesh.vertices, mesh.faces, embree_binding="embreex")
+    assert classes.embree_binding == "embreex"
+    for n in (1, 15, 16, 17, 5001):
+        o, d = _random_rays(n, seed=n)
+        fa, ta = direct.first_hit(o, d)
+        fb, tb = classes.first_hit(o, d)
+        assert np.mean(fa == fb) > 0.999 and (n < 100 or 0.2 < np.mean(fa >= 0) < 0.8)
+        both = (fa >= 0) & (fa == fb)
+        np.testing.assert_allclose(ta[both], tb[both], rtol=0, atol=2e-6 * 28.0)
+        assert np.all(np.isinf(ta[fa < 0]))
+    with pytest.raises(ValueError, match="embree_binding"):
+        RayEngine(mesh.vertices, mesh.faces, embree_binding="optix")

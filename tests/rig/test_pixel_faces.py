@@ -131,3 +131,24 @@ def test_shapes(w: int, h: int) -> None:
                                    target_mm=(0, 0, 0), up=(0, 1, 0))
     got = pixel_faces(box, cam)
     assert got.shape == (h, w) and np.all(got >= 0)
+
+
+def test_candidate_pixels_give_the_map_of_every_pixel() -> None:
+    """With a pinhole camera only pixels inside the projected faces' boxes cast rays: the map (and the surface
+    points) equal one ray through every pixel centre, here with the torus partly out of frame."""
+    from estimation.rays import RayEngine
+
+    torus = trimesh.creation.torus(30.0, 10.0, major_sections=40, minor_sections=20)
+    cam = PinholeCamera.looking_at(width_px=90, height_px=60, fx_px=70.0, position_mm=(25.0, -90.0, 40.0),
+                                   target_mm=(-30.0, 0.0, 0.0))
+    eng = RayEngine(torus.vertices, torus.faces)
+    pts = np.empty((60, 90, 3))
+    got = pixel_faces(torus, cam, engine=eng, points=pts)
+    o, d = cam.pixel_rays()
+    face, t = eng.first_hit(o, d)
+    front = (face >= 0) & (np.einsum("hwc,hwc->hw", eng.face_normals[np.maximum(face, 0)], d) < 0)
+    want = np.where(front, face, -1)
+    assert 0.2 < np.mean(want >= 0) < 0.9 and np.any(want[:, -1] >= 0)    # partly out of frame, background too
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_allclose(pts[front], (o + t[..., None] * d)[front], atol=1e-9)
+    assert np.all(np.isnan(pts[~front]))

@@ -779,11 +779,13 @@ def test_mc_reference_environment_orientation_is_the_estimators(tmp_path):
     assert np.max(np.abs(np.array(wrong_ratios) - 1.0)) > 0.3
 
 
-def test_mc_reference_refuses_point_lights_through_a_non_convex_refracting_mesh_of_many_planes(tmp_path, capsys):
-    """A non-convex mesh of more face planes than the renderer's refracted connections search (every triangle
-    its own plane, like a scanned mesh) under a point light at eta 1.3: exit status 2 and a message that says why
-    and what to do, before any fit. (Few planes, e.g. the dented pyramid as it is, are rendered: issue 17.)"""
-    from simulators.mc.shapes import MAX_CONNECTION_PLANES
+def test_mc_reference_accepts_point_lights_through_a_non_convex_refracting_mesh_of_many_planes(tmp_path):
+    """A non-convex mesh of more face planes than the all-planes search takes (every triangle its own plane, like
+    a scanned mesh) under a point light at eta 1.3: refused before issue 17's BVH connections (exit status 2); now
+    the reference's scene check passes and hands the renderer a mesh connected through its BVH (the renders:
+    tests/simulators/test_mc_bvh_connections.py)."""
+    from rig.scene_reference import check_reference_scene
+    from simulators.mc.shapes import BVH_CONNECTIONS, MAX_CONNECTION_PLANES
 
     cam = _mc_camera(24)
     dented = _pyramid(dent_mm=4.0).subdivide().subdivide().subdivide().subdivide()
@@ -793,14 +795,10 @@ def test_mc_reference_refuses_point_lights_through_a_non_convex_refracting_mesh_
     assert dented.is_watertight and not dented.is_convex and dented.volume > 0
     dented.export(tmp_path / "pyramid.ply")
     write_exr(tmp_path / "img.exr", np.zeros((24, 24), np.float32))
-    scene = _write_scene(tmp_path, _mc_scene_doc(cam))
-    code = rig_main(["estimate", "single-image", str(scene), "--model", "mc-table+reference"])
-    out, err = capsys.readouterr()
-    assert code == 2, (out, err)
-    assert "Traceback" not in err and str(scene) in err and "'point_lights'" in err
-    for words in ("non-convex", "eta = 1.3", "environment map", "material.eta = 1"):
-        assert words in err, err
-    assert not (tmp_path / "scene.estimate.json").exists()
+    scene = load_scene(_write_scene(tmp_path, _mc_scene_doc(cam)))
+    assert scene.point_lights and abs(scene.material.eta - 1.0) > 0.1
+    geo = check_reference_scene(scene).geometry()
+    assert not geo.convex and geo.params[1] == BVH_CONNECTIONS
 
 
 def test_mc_reference_pixel_rays_of_a_distorted_camera(tmp_path):

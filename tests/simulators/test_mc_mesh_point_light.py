@@ -31,7 +31,7 @@ from estimation.camera import PinholeCamera
 from estimation.single_image import PointLights
 from simulators.mc import Box, Medium, Mesh, render
 from simulators.mc.nee import light_contribution, min_inside_length
-from simulators.mc.shapes import MAX_CONNECTION_PLANES, STACK_SIZE
+from simulators.mc.shapes import BVH_CONNECTIONS, MAX_CONNECTION_PLANES, PLANE_TABLE, STACK_SIZE
 from test_mc_frames_single_image import pyramid_mesh
 
 LO_MM = np.array([-2.0, -3.0, -2.5])
@@ -157,30 +157,31 @@ def test_pyramid_under_a_point_light_at_eta_1_3_and_its_eta_1_limit():
     assert rel.max() < 1e-4
 
 
-def test_non_convex_mesh_of_many_planes_with_point_lights_and_eta_raises():
-    """Non-convex meshes of few face planes are connected (tests/simulators/test_mc_nonconvex_point_light.py);
-    beyond MAX_CONNECTION_PLANES distinct planes they are refused at eta != 1."""
+def test_non_convex_mesh_of_many_planes_with_point_lights_and_eta_renders():
+    """Non-convex meshes of few face planes are connected plane by plane (tests/simulators/
+    test_mc_nonconvex_point_light.py); beyond MAX_CONNECTION_PLANES distinct planes (refused before issue 17's
+    BVH connections) through the triangles the BVH finds near each vertex (tests/simulators/
+    test_mc_bvh_connections.py)."""
     annulus = Mesh(trimesh.creation.annulus(r_min=2.0, r_max=5.0, height=2.0, sections=2 * MAX_CONNECTION_PLANES))
     assert not annulus.geometry().convex
     cam = _camera(4)
     light = PointLights([[0.0, -9.0, 3.0]], [1.0])
-    with pytest.raises(ValueError, match="non-convex"):
-        render(annulus, Medium(1.0, 0.1, 0.0, 1.3), cam, light, spp=2)
-    render(annulus, Medium(1.0, 0.1, 0.0, 1.0), cam, light, spp=2)   # eta = 1: exact occlusion, supported
+    for eta in (1.3, 1.0):                                  # eta = 1: exact occlusion by straight segments
+        img = render(annulus, Medium(1.0, 0.1, 0.0, eta), cam, light, spp=2)
+        assert np.all(np.isfinite(img.radiance)) and img.radiance[img.mask].max() > 0
 
 
-def test_capture_bridge_uses_point_lights_unless_the_mesh_has_too_many_planes():
+def test_capture_bridge_uses_point_lights_for_any_mesh():
     from simulators.mc_capture import MCSettings, led_lights, mc_shape
     from simulators.scene import MeshObject
 
     pos, em = np.array([[0.0, -300.0, 300.0]]), np.ones((1, 3))
     many = trimesh.creation.annulus(r_min=2.0, r_max=5.0, height=2.0, sections=2 * MAX_CONNECTION_PLANES)
-    for mesh, convex in ((_pyramid(), True), (trimesh.creation.annulus(r_min=2.0, r_max=5.0, height=2.0), True),
-                         (many, False)):
+    # a convex mesh (face table), a non-convex one of few planes (plane table), one of many (BVH connections)
+    for mesh, table in ((_pyramid(), 0.0), (trimesh.creation.annulus(r_min=2.0, r_max=5.0, height=2.0), PLANE_TABLE),
+                        (many, BVH_CONNECTIONS)):
         obj = MeshObject(mesh, (1.0,) * 3, (0.02,) * 3, 1.3)
         shape = mc_shape(obj)
         assert isinstance(shape, Mesh)
-        assert led_lights(obj, shape, pos, em, MCSettings())[1] == ("points" if convex else "distant")
-        if not convex:
-            with pytest.raises(ValueError, match="non-convex|convex|planes"):
-                led_lights(obj, shape, pos, em, MCSettings(leds="points"))
+        assert shape.geometry().params[1] == table
+        assert led_lights(obj, shape, pos, em, MCSettings())[1] == "points"   # the many-plane one too (issue 17)

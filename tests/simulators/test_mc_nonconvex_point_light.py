@@ -19,7 +19,8 @@ Checks:
    new connections), within the standard errors;
 5. the L-block under a point light at eta 1.3: dark where the wall shadows the slab's top (x < 17 mm by the
    geometry), lit beyond;
-6. a non-convex mesh of too many face planes is still refused, naming the limit.
+6. a non-convex mesh of more than MAX_CONNECTION_PLANES face planes gets no plane table (it is connected by the
+   BVH search instead, tests/simulators/test_mc_bvh_connections.py).
 """
 from __future__ import annotations
 
@@ -33,7 +34,8 @@ from estimation.camera import OrthographicCamera, PinholeCamera
 from estimation.single_image import EnvironmentMap, PointLights
 from simulators.mc import Medium, Mesh, render
 from simulators.mc.nee import light_contribution, min_inside_length
-from simulators.mc.shapes import MAX_CONNECTION_PLANES, MESH, STACK_SIZE, nearest_hit, plane_table
+from simulators.mc.shapes import (BVH_CONNECTIONS, MAX_CONNECTION_PLANES, MESH, STACK_SIZE, nearest_hit,
+                                  plane_table)
 from simulators.scene import wall_on_slab_mesh
 from test_mc_frames_single_image import pyramid_mesh
 
@@ -248,13 +250,14 @@ def test_l_block_shadow_at_eta_1_3_is_where_the_geometry_says():
     assert edge_in < 0.5 * lit < edge_out                    # the edge between 16 and 18 mm (l_d = 0.63 mm)
 
 
-def test_too_many_face_planes_are_refused():
+def test_many_face_planes_go_to_the_bvh_connections():
+    """Beyond MAX_CONNECTION_PLANES planes no plane table is built (refused before issue 17; now the BVH
+    connections, tests/simulators/test_mc_bvh_connections.py); an annulus of few sections keeps its table."""
     ring = trimesh.creation.annulus(r_min=2.0, r_max=5.0, height=2.0, sections=2 * MAX_CONNECTION_PLANES)
     fine = Mesh(ring)
     assert not fine.geometry().convex and fine.geometry().params[0] == 0
+    assert fine.geometry().params[1] == BVH_CONNECTIONS
     light = PointLights([[0.0, -9.0, 3.0]], [1.0])
-    with pytest.raises(ValueError, match="face planes"):
-        render(fine, Medium(1.0, 0.1, 0.0, 1.3), _camera(4), light, spp=2)
     coarse = Mesh(trimesh.creation.annulus(r_min=2.0, r_max=5.0, height=2.0, sections=16))
     assert coarse.geometry().params[0] == 34                 # 16 + 16 sides, top, bottom
     img = render(coarse, Medium(1.0, 0.1, 0.0, 1.3), _camera(8), light, spp=4)
