@@ -122,7 +122,7 @@ def read_regions(t: Any, folder: Path, shape: tuple[int, int]) -> RegionLabels |
     if absent:
         shown = ", ".join(map(str, absent[:10])) + (f" (+{len(absent) - 10} more)" if len(absent) > 10 else "")
         raise t.err("regions", f"every label 1..{hi} present (0 = no region; number the regions 1..N without gaps)",
-                    f"{p.name}: labels {shown} absent")
+                    f"{p.name}: label(s) {shown} absent")
     names = {k: f"region {k}" for k in range(1, hi + 1)}
     raw = t.data.get("region_names")
     if raw is not None:
@@ -165,14 +165,18 @@ def _sphere_region(dmaps: Any, region: NDArray[np.bool_], radius_mm: float, eta:
     if few.any():       # NaN the channels below the minimum before the widening (which skips unknown channels)
         from dataclasses import replace
 
-        from estimation.diffusion import ParameterSummary
+        from estimation.diffusion import ParameterSummary, grounded_model_bias
         params = {}
         for k, p in summ.params.items():
             v, iv = p.value.copy(), p.interval.copy()
             v[few], iv[few] = np.nan, np.nan
             params[k] = ParameterSummary(v, iv)
         status = tuple("unknown" if few[c] else summ.status[c] for c in range(3))
-        summ = replace(summ, params=params, status=status)
+        prov = dict(summ.provenance)
+        if "model_bias" in prov and not few.all():      # evaluated again without the dropped channels
+            prov["model_bias"] = grounded_model_bias(params["sigma_s_prime_per_mm"].value,
+                                                     params["sigma_a_per_mm"].value, dmaps.eta, prov["model"])
+        summ = replace(summ, params=params, status=status, provenance=prov)
     out = grounded_summary(summ, radius_mm, eta)
     out["n_pixels"] = counts.tolist()
     if few.any():
