@@ -169,3 +169,27 @@ def test_region_names_without_regions_and_a_missing_file(tmp_path, capsys, marbl
     err = _err(folder, capsys)
     assert "field 'object.regions'" in err and "an existing label image" in err and "nope.png" in err
     assert not (folder / "maps").exists()        # refused while loading, before any map
+
+
+def test_a_channel_with_too_few_pixels_is_unknown_and_leaves_the_others() -> None:
+    """Synthetic grounded maps of a 10 mm marble sphere (exact albedo and shortening in every pixel): green and blue
+    known in only 5 and 3 pixels of the region -> "unknown" with the reason, values None, no model bias for them;
+    red recovers marble's D as the whole-object path would (the same summarize + widening)."""
+    from estimation.diffusion import DiffusionMaps, sphere_albedo, sphere_shortening
+    from rig.folder_regions import _sphere_region
+    from rig.provenance import jsonable
+
+    ssp, sa, eta, rho, n = _tcf.MARBLE[0], _tcf.MARBLE[1], _tcf.ETA, _tcf.RADIUS, 8
+    A = np.broadcast_to(sphere_albedo(rho, ssp, sa, eta), (n, n, 3)).astype(np.float32)
+    S = np.broadcast_to(sphere_shortening(rho, ssp, sa, eta), (n, n, 3)).astype(np.float32)
+    nan = np.full((n, n, 3), np.nan, np.float32)
+    unknown = np.zeros((n, n, 3), bool)
+    unknown[..., 1:] = True
+    unknown[0, :5, 1] = unknown[0, :3, 2] = False
+    dm = DiffusionMaps(A, S, np.full((n, n), rho, np.float32), *(nan,) * 9, unknown=unknown,
+                       censored=np.zeros((n, n, 3), bool), method="sphere", eta=eta)
+    d = jsonable(_sphere_region(dm, np.ones((n, n), bool), rho, eta, MIN_REGION_PIXELS))
+    assert d["status"][1:] == ["unknown"] * 2 and d["status"][0] != "unknown" and d["n_pixels"] == [64, 5, 3]
+    assert d["reason"][0] is None and "5 usable pixel(s) < 6" in d["reason"][1] and "3 usable" in d["reason"][2]
+    assert d["D_mm"]["value"][1:] == [None, None] and d["model_bias"]["channels_evaluated"] == [True, False, False]
+    np.testing.assert_allclose(d["D_mm"]["value"][0], 1 / (3 * (ssp[0] + sa[0])), rtol=2e-3)
