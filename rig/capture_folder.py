@@ -1026,7 +1026,7 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
         summary["diffusion_reference_corrected"] = ref_summary
     if cap.regions is not None:     # rig.folder_regions: the same summaries restricted to each labelled region
         summary["regions"] = region_summaries(cap.regions, maps, alb_app, diffusion=diffusion, relief_fit=relief_fit,
-                                              radius_mm=radius, eta=rad.eta)
+                                              radius_mm=radius, eta=rad.eta, unknown_reason=diff_summary.get("reason"))
     prov: dict[str, Any] = {
         "name": cap.name,
         "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),

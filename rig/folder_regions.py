@@ -211,12 +211,12 @@ def _medians(a: Any, known: NDArray[np.bool_]) -> list[float | None]:
 
 def region_summaries(regions: RegionLabels, maps: Any, albedo_apparent: Any, *, diffusion: Any = None,
                      relief_fit: Any = None, radius_mm: float | None = None, eta: float | None = None,
-                     min_pixels: int = MIN_REGION_PIXELS) -> list[dict[str, Any]]:
+                     unknown_reason: str | None = None, min_pixels: int = MIN_REGION_PIXELS) -> list[dict[str, Any]]:
     """One summary per region: ``label``, ``name``, ``n_pixels_label`` (pixels carrying the label), ``maps``
     (``known_pixels``, ``R_d_median``, ``albedo_apparent_median`` per channel over the label's known pixels) and
     ``diffusion``: with a sphere's grounded maps (``diffusion``, ``radius_mm``, ``eta``) the sphere region summary,
     with a relief fit (``relief_fit``: :class:`estimation.relief.ReliefFit`) the relief region summary, otherwise
-    unknown with the reason (as the whole object)."""
+    unknown with the whole object's reason (``unknown_reason``)."""
     known = ~np.asarray(maps.unknown)
     out: list[dict[str, Any]] = []
     for label, name, m in regions.masks():
@@ -232,8 +232,8 @@ def region_summaries(regions: RegionLabels, maps: Any, albedo_apparent: Any, *, 
         elif relief_fit is not None:
             entry["diffusion"] = _relief_region(relief_fit, m)
         else:
-            entry["diffusion"] = {"status": ["unknown"] * 3, "reason": "no geometry and no specular normals "
-                                  "(as the whole object)"}
+            entry["diffusion"] = {"status": ["unknown"] * 3,
+                                  "reason": f"as the whole object: {unknown_reason or 'diffusion unknown'}"}
         out.append(entry)
     return out
 

@@ -193,3 +193,23 @@ def test_a_channel_with_too_few_pixels_is_unknown_and_leaves_the_others() -> Non
     assert d["reason"][0] is None and "5 usable pixel(s) < 6" in d["reason"][1] and "3 usable" in d["reason"][2]
     assert d["D_mm"]["value"][1:] == [None, None] and d["model_bias"]["channels_evaluated"] == [True, False, False]
     np.testing.assert_allclose(d["D_mm"]["value"][0], 1 / (3 * (ssp[0] + sa[0])), rtol=2e-3)
+
+
+def test_regions_without_geometry_give_map_medians_and_unknown_diffusion(tmp_path, capsys) -> None:
+    """The unblurred ideal-gradient sphere of test_capture_folder (no geometry: diffusion unknown): each region's R_d
+    median is the sphere's albedo (to float32 precision, as the whole object), its diffusion unknown with the whole
+    object's reason; a region wholly on the background has no known pixel and no median."""
+    folder = tmp_path / "ortho"
+    tr = _tcf._ideal_ortho_capture(folder)
+    h, w = tr["hit"].shape
+    lab = _halves(h, w, np.uint8)
+    lab[0:2, 0:2] = 3                                     # a corner: background
+    cv2.imwrite(str(folder / "r.png"), lab)
+    (folder / "capture.toml").write_text((folder / "capture.toml").read_text() + 'regions = "r.png"\n')
+    s = _run(folder, capsys, "--format", "tiff")
+    left, right, corner = s["regions"]
+    for r in (left, right):
+        np.testing.assert_allclose(r["maps"]["R_d_median"], tr["albedo"], rtol=1e-4)
+        assert min(r["maps"]["known_pixels"]) > 0.4 * tr["hit"].sum()
+        assert r["diffusion"]["status"] == ["unknown"] * 3 and "no geometry" in r["diffusion"]["reason"]
+    assert corner["maps"]["known_pixels"] == [0, 0, 0] and corner["maps"]["R_d_median"] == [None] * 3
