@@ -29,7 +29,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Iterator, Mapping
 
 import numpy as np
 from numpy.typing import NDArray
@@ -53,9 +53,10 @@ class RegionLabels:
     file: Path
     sha256: str
 
-    def masks(self) -> list[tuple[int, str, NDArray[np.bool_]]]:
-        """(label, name, (H, W) bool mask) per region, by label."""
-        return [(k, n, self.labels == k) for k, n in sorted(self.names.items())]
+    def masks(self) -> Iterator[tuple[int, str, NDArray[np.bool_]]]:
+        """(label, name, (H, W) bool mask) per region, by label; one mask at a time (24 MB each at 24 MP)."""
+        for k, n in sorted(self.names.items()):
+            yield k, n, self.labels == k
 
     def provenance(self, folder: Path) -> dict[str, Any]:
         try:
