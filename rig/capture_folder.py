@@ -291,6 +291,7 @@ class Capture:
     specular: bool
     notes: tuple[str, ...] = ()
     relief: Any = None          # rig.folder_diffusion.ReliefGeometry ([object] shape = "relief") or None
+    regions: Any = None         # rig.folder_regions.RegionLabels ([object] regions) or None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -631,13 +632,13 @@ def _read_mask(t: _Table, folder: Path, shape: tuple[int, int]) -> tuple[NDArray
 
 
 def _read_object(file: str, folder: Path, data: dict[str, Any], shape: tuple[int, int], camera: Any = None
-                 ) -> tuple[NDArray[np.bool_] | None, Path | None, SphereGeometry | None, Any]:
+                 ) -> tuple[NDArray[np.bool_] | None, Path | None, SphereGeometry | None, Any, Any]:
     if "object" not in data:
-        return None, None, None, None
+        return None, None, None, None, None
     if not isinstance(data["object"], dict):
         raise ConfigError(file, "object", "a table [object]", type(data["object"]).__name__)
     t = _Table(file, data["object"], "object.", ("mask", "shape", "center_mm", "radius_mm", "normals_file",
-                                                 "height_file"))
+                                                 "height_file", "regions", "region_names"))
     mask, mask_file = _read_mask(t, folder, shape) if t.has("mask") else (None, None)
     shape_kind = t.str("shape", "unknown", choices=("unknown", "sphere", "relief"))
     geo = None
@@ -655,7 +656,8 @@ def _read_object(file: str, folder: Path, data: dict[str, Any], shape: tuple[int
         for k in ("normals_file", "height_file"):
             if t.has(k):
                 raise t.err(k, "nothing unless shape = \"relief\"", k)
-    return mask, mask_file, geo, relief
+    from .folder_regions import read_regions
+    return mask, mask_file, geo, relief, read_regions(t, folder, shape)
 
 
 def _read_seed(file: str, data: dict[str, Any]) -> SeedSpec | None:
@@ -720,12 +722,12 @@ def load_capture(folder: str | Path) -> Capture:
                                                         for a in _AXES):
             raise ConfigError(file, "radiometry.reference", "a cross-polarized full frame, or a gradient with its "
                               "complement (their sum is the full pattern), to measure the reference", None)
-    mask, mask_file, geo, relief = _read_object(file, root, data, shape, camera)
+    mask, mask_file, geo, relief, regions = _read_object(file, root, data, shape, camera)
     seed = _read_seed(file, data)
     spec_ok, spec_note = _specular_possible(set(images))
     notes = tuple(n for n in (spec_note,) if n)
     return Capture(root, cfile, sha256_file(cfile), name, frames, images, leds, camera, cam_spec, radiometry, mask,
-                   mask_file, geo, seed, spec_ok, notes, relief)
+                   mask_file, geo, seed, spec_ok, notes, relief, regions)
 
 
 # ------------------------------------------------------------------------------------------------ estimate
@@ -954,6 +956,7 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
     t_maps = time.perf_counter() - t0
     notes = list(cap.notes)
     from .folder_diffusion import apply_dark_channels, relief_branch, write_albedo_apparent
+    from .folder_regions import grounded_summary, region_summaries
     apply_dark_channels(cap, maps, obj, exposure, notes)
     known = ~maps.unknown
     seed_est = None
@@ -962,6 +965,7 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
     diffusion = None
     diff_summary: dict[str, Any]
     relief_files: dict[str, Path] = {}
+    relief_fit = None
     ref_summary: dict[str, Any] | None = None
     if cap.geometry is not None:
         assert normals is not None
@@ -969,19 +973,17 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
         est = estimate_sphere(maps, radius_mm=cap.geometry.radius_mm, true_normals=normals, region=obj,
                               tile_rows=tile_rows or 256, out_dir=None if scratch is None else scratch / "diffusion",
                               method=method, model=model)
-        diffusion = est.maps
-        diff_summary = {"estimator": f"grounded {method} (docs/gradients.md sec. 5)", **est.summary.as_dict()}
-        if method == "sphere":      # the dipole's measured shortening bias widens the intervals (issue 16)
-            from estimation.sphere_bias import widen_sphere_summary
-            diff_summary = widen_sphere_summary(diff_summary, cap.geometry.radius_mm, rad.eta)
+        diffusion = est.maps        # the dipole's measured shortening bias widens the intervals (issue 16)
+        diff_summary = grounded_summary(est.summary, cap.geometry.radius_mm, rad.eta)
         if reference is not None:
             ref_summary = _reference_summary(cap, reference, leds, scale, rad.eta, n_ref, normals, obj, maps,
                                              folder_maps, tile_rows or 256)
             notes.append("diffusion_reference_corrected: the sphere summary corrected by Monte Carlo reference "
                          "renders; the per-pixel maps are uncorrected")
     elif cap.relief is not None or maps.specular_normals is not None:
-        diff_summary, relief_files = relief_branch(cap, maps, obj, Path(out_dir), fmt, relief_window_px, notes,
-                                                   seed_D_mm=None if seed_est is None else seed_est.D_mm)
+        diff_summary, relief_files, relief_fit = relief_branch(
+            cap, maps, obj, Path(out_dir), fmt, relief_window_px, notes,
+            seed_D_mm=None if seed_est is None else seed_est.D_mm)
     else:
         diff_summary = {"estimator": "grounded", "status": ["unknown"] * 3,
                         "reason": "no geometry ([object] shape = \"sphere\" with center_mm, radius_mm): a region "
@@ -1022,6 +1024,9 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
     }
     if ref_summary is not None:
         summary["diffusion_reference_corrected"] = ref_summary
+    if cap.regions is not None:     # rig.folder_regions: the same summaries restricted to each labelled region
+        summary["regions"] = region_summaries(cap.regions, maps, alb_app, diffusion=diffusion, relief_fit=relief_fit,
+                                              radius_mm=radius, eta=rad.eta, unknown_reason=diff_summary.get("reason"))
     prov: dict[str, Any] = {
         "name": cap.name,
         "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
@@ -1040,7 +1045,7 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
                    {"file": _rel(cap.mask_file, cap.folder), "sha256": sha256_file(cap.mask_file)},
                    "shape": "sphere" if cap.geometry else ("relief" if cap.relief is not None else "unknown"),
                    **({"center_mm": cap.geometry.center_mm, "radius_mm": cap.geometry.radius_mm}
-                      if cap.geometry else {})},
+                      if cap.geometry else {}), "regions": cap.regions and cap.regions.provenance(cap.folder)},
         "seed": None if cap.seed is None else {"k_mm": cap.seed.k_mm, **cap.seed.provenance},
         "parameters": {"format": fmt, "tile_rows": tile_rows or 256, "model": model,
                        "maps": "all" if select is None else list(select), "half": bool(half),
@@ -1100,6 +1105,8 @@ def format_summary(s: Mapping[str, Any]) -> str:
                          f"{_fmt(r['sigma_s_prime_per_mm']['value'][c]):>15}"
                          f"{_fmt(r['sigma_a_per_mm']['value'][c]):>12}{_fmt(r['kappa_albedo'][c], '.3f'):>11}"
                          f"{_fmt(r['kappa_blur'][c], '.3g'):>11}{_fmt(r['uncorrected']['D_mm'][c]):>11}")
+    from .folder_regions import format_regions
+    lines += format_regions(s.get("regions"))
     if s.get("seed"):
         lines.append("seed D [mm] (relative, k calibrated elsewhere): "
                      + " ".join(_fmt(v) for v in s["seed"]["D_mm_median"]))

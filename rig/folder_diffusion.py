@@ -81,12 +81,13 @@ def pixel_footprint_mm(camera: PinholeCamera | OrthographicCamera) -> float:
 
 def relief_estimate(maps: Any, true_normals: NDArray[np.float64], source: str, camera: Any,
                     region: NDArray[np.bool_] | None, out_dir: Path, fmt: str, window_px: int,
-                    seed_D_mm: Any = None) -> tuple[dict[str, Any], dict[str, Path]]:
+                    seed_D_mm: Any = None) -> tuple[dict[str, Any], dict[str, Path], Any]:
     """The per-window relief fit and its region summary; writes the window maps. With the seed's D map
     (``seed_D_mm``, (H, W, 3)) also the seed beside the fit (:func:`estimation.relief.compare_seed`): the maps
     ``relief_D_seed_ratio`` (window median seed D / fitted D) and ``relief_D_seed_disagree`` (1 where the seed lies
     outside the fit's interval, 0 where it agrees, NaN where not compared) and ``versus_seed`` in the summary.
-    Returns (summary, files)."""
+    Returns (summary, files, fit): ``fit`` the :class:`estimation.relief.ReliefFit` (None when the image is
+    smaller than a window), for the per-region summaries (:mod:`rig.folder_regions`)."""
     from .imageio import write_exr, write_float_tiff
 
     H, W = maps.shape
@@ -95,7 +96,7 @@ def relief_estimate(maps: Any, true_normals: NDArray[np.float64], source: str, c
         window_px = min(H, W)
     if window_px < 16:
         return ({"estimator": "relief blur (estimation.relief)", "status": ["unknown"] * 3,
-                 "reason": f"the image ({W} x {H} px) is smaller than the smallest relief window (16 px)"}, {})
+                 "reason": f"the image ({W} x {H} px) is smaller than the smallest relief window (16 px)"}, {}, None)
     valid = ~np.asarray(maps.unknown)
     if region is not None:
         valid &= np.asarray(region, dtype=bool)[..., None]
@@ -132,7 +133,7 @@ def relief_estimate(maps: Any, true_normals: NDArray[np.float64], source: str, c
                **reg.as_dict(), "fit": fit.provenance}
     if versus_seed is not None:
         summary["versus_seed"] = versus_seed
-    return summary, files
+    return summary, files, fit
 
 
 def dark_channels(images: Any, exposure_s: Any, region: NDArray[np.bool_], dark_level: float,
@@ -258,7 +259,7 @@ def apply_dark_channels(cap: Any, maps: Any, obj: Any, exposure: Any, notes: lis
 
 
 def relief_branch(cap: Any, maps: Any, obj: Any, out_dir: Path, fmt: str, window_px: int | None,
-                  notes: list[str], seed_D_mm: Any = None) -> tuple[dict[str, Any], dict[str, Path]]:
+                  notes: list[str], seed_D_mm: Any = None) -> tuple[dict[str, Any], dict[str, Path], Any]:
     """The relief estimate with the folder's relief geometry, else the specular normals (shape unknown); with the
     seed's D map, the seed beside it (:func:`relief_estimate`)."""
     if cap.relief is not None:
