@@ -1,0 +1,141 @@
+"""The reference loop's start on the ridge of constant albedo: a coarse scan of cheap renders.
+
+The single-image method sees a uniformly lit body mostly through its brightness, which the albedo alpha' =
+sigma_s' / (sigma_s' + sigma_a) sets; the optical size (sigma_s' times the body's size) changes the image only
+through the profile's length. Under a sky or a sun (all faces lit at once) the flat-profile fit is then determined
+along a *ridge of constant albedo* only — its correlation of log sigma_s' and log sigma_a is ~+1 (measured on the
+scene zoo: 0.90-1.00 on every sky- and sun-lit scene, -0.64-0.16 on the point-lit ones) — and where its model
+is also outside its validity it lands anywhere on that ridge: a 5 mm skimmilk pyramid under a sky (l_d 18 mm)
+at the search range's edge, 176x the true sigma_s' (docs/model-error.md sec. 4, "Is the information there?").
+A reference loop started there spends its renders far away (70x the truth after six renders).
+
+:func:`scan_ridge` asks the frame instead: Monte Carlo renders of the scene at sigma_s' = f sigma_s'_0 and
+sigma_a = f sigma_a_0 (albedo held) for a geometric grid of f, all with the same seed (common random numbers: the
+renders' noise is shared and cancels from the comparison), each compared with the observations in the loop's own
+metric and robust objective (Huber on the residuals normalized by the stated noise, the render's and a relative
+model error), sigma_a re-optimised at each f to first order by the render's score-function derivative d Q / d log
+sigma_a from the same paths (:func:`profile_chi2`, step clipped to +-:data:`MAX_DELTA_LOG_SA`). The best point of
+the grid starts the loop. This is a profile likelihood (Murphy and van der Vaart 2000, "On profile likelihood",
+JASA 95(450)) sampled on a coarse grid; ``benchmarks/zoo/information.py`` evaluates the same profile finely
+around the truth as a diagnostic, with :func:`profile_chi2` from here.
+
+:func:`ridge_channels` says which channels need it: the plain fit's sigma_s' at or near its range's edge, or
+weak with a correlation of the log parameters of at least :data:`RIDGE_CORRELATION`.
+"""
+from __future__ import annotations
+
+import time
+from typing import Any, Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .reference_intervals import _huber_sum
+from .single_image import SingleImageResult
+
+__all__ = ["MAX_DELTA_LOG_SA", "RIDGE_CORRELATION", "EDGE_FACTOR", "SCAN_RATIO", "SCAN_STEPS", "profile_chi2",
+           "ridge_channels", "scan_ridge"]
+
+Array = NDArray[np.float64]
+
+#: the first-order sigma_a refit is trusted within this log step (a factor 2); larger steps are clipped to it
+MAX_DELTA_LOG_SA: float = 0.7
+#: a weak plain fit whose corr(log sigma_s', log sigma_a) is at least this lies on the ridge of constant albedo
+RIDGE_CORRELATION: float = 0.85
+#: a plain sigma_s' within this factor of the start range's bounds (or beyond them) is "at the edge"
+EDGE_FACTOR: float = 2.0
+#: the scan's grid: f = SCAN_RATIO ** k for k in range(SCAN_STEPS[0], SCAN_STEPS[1] + 1) (a factor 1/81 to 9 of
+#: the plain fit's sigma_s', clipped to the start range; duplicates after clipping are rendered once)
+SCAN_RATIO: float = 3.0
+SCAN_STEPS: tuple[int, int] = (-4, 2)
+#: Huber threshold of the robust objective (that of the reference loop, :func:`reference_intervals._huber_sum`)
+_HUBER_K = 2.5
+
+
+def profile_chi2(r: Array, d: Array, w: Array, max_delta: float = MAX_DELTA_LOG_SA) -> tuple[float, float, float]:
+    """(chi^2 at the render, chi^2 with sigma_a re-optimised to first order, that delta log sigma_a) for residuals
+    ``r`` = observed - rendered, the render's derivative ``d`` = d Q / d log sigma_a and weights ``w`` (1-D,
+    finite): the weighted least-squares step delta = sum(w r d) / sum(w d d), clipped to +-``max_delta``."""
+    c0 = float(np.sum(w * r * r))
+    dd = float(np.sum(w * d * d))
+    rd = float(np.sum(w * r * d))
+    delta = float(np.clip(rd / dd, -max_delta, max_delta)) if dd > 0 else 0.0
+    return c0, float(np.sum(w * (r - delta * d) ** 2)), delta
+
+
+def ridge_channels(result: SingleImageResult, ssp_range_per_mm: tuple[float, float]) -> tuple[NDArray[np.bool_],
+                                                                                                list[str]]:
+    """(C,) channels whose plain fit is no start for the reference loop, and why ("" where it is): sigma_s' within
+    :data:`EDGE_FACTOR` of ``ssp_range_per_mm``'s bounds or beyond them, or sigma_s' weak (``extra["status"]``)
+    with corr(log sigma_s', log sigma_a) >= :data:`RIDGE_CORRELATION`."""
+    ssp = np.atleast_1d(np.asarray(result.sigma_s_prime_per_mm, dtype=np.float64))
+    n_ch = ssp.size
+    lo, hi = ssp_range_per_mm
+    edge = (ssp <= EDGE_FACTOR * lo) | (ssp >= hi / EDGE_FACTOR)
+    corr = np.full(n_ch, np.nan)
+    if result.correlation_log is not None:
+        corr = np.broadcast_to(np.asarray(result.correlation_log, dtype=np.float64).reshape(-1), (n_ch,))
+    status = (result.extra or {}).get("status") or {}
+    weak = np.array([s != "ok" for s in status.get("sigma_s_prime_per_mm", ["ok"] * n_ch)], dtype=bool)
+    ridge = weak & (np.nan_to_num(corr, nan=-1.0) >= RIDGE_CORRELATION)
+    why = [("; ".join(x for x in (
+        f"sigma_s' {ssp[c]:.3g} /mm at the edge of the start range {lo:g}-{hi:g} /mm" if edge[c] else "",
+        f"sigma_s' weak on the ridge of constant albedo (corr(log sigma_s', log sigma_a) = {corr[c]:.3f})"
+        if ridge[c] else "") if x)) for c in range(n_ch)]
+    return edge | ridge, why
+
+
+def scan_ridge(render: Callable[[Array], tuple[Array, Array, Array | None, float]], obs: Array,
+               metric: Callable[[Array, Array], Array], theta_start: Array, ssp_range_per_mm: tuple[float, float],
+               channels: NDArray[np.bool_]) -> tuple[Array, dict[str, Any]]:
+    """Scan the ridge of constant albedo through ``theta_start`` (C, 2: log sigma_s', log sigma_a per channel) on
+    the grid f = :data:`SCAN_RATIO` ** k (module docstring); return the start (C, 2) — the best grid point with its
+    first-order sigma_a refit where ``channels``, ``theta_start`` elsewhere — and a JSON-able record of the scan.
+
+    ``render(theta) -> (radiance (m, C), stderr (m, C), d_radiance (m, C, 2) or None, seconds)`` over the observed
+    rows, all with one seed; ``metric(stderr, radiance) -> (m, C)`` the standard deviation an observation is
+    compared with a render by (the reference loop's); ``obs`` (m, C) NaN where not observed."""
+    n_ch = theta_start.shape[0]
+    lo, hi = np.log(ssp_range_per_mm[0]), np.log(ssp_range_per_mm[1])
+    ks = np.arange(SCAN_STEPS[0], SCAN_STEPS[1] + 1)
+    log_f = ks * np.log(SCAN_RATIO)
+    grid: list[Array] = []
+    for lf in log_f:
+        ssp = np.where(channels, np.clip(theta_start[:, 0] + lf, lo, hi), theta_start[:, 0])
+        th = np.stack([ssp, theta_start[:, 1] + (ssp - theta_start[:, 0])], axis=1)  # albedo held
+        if not any(np.allclose(th, g, rtol=0, atol=1e-9) for g in grid):
+            grid.append(th)
+    objective = np.full((len(grid), n_ch), np.inf)
+    delta = np.zeros((len(grid), n_ch))
+    seconds = []
+    t0 = time.perf_counter()
+    for i, th in enumerate(grid):
+        q, se, dq, s = render(th)
+        seconds.append(s)
+        m = metric(se, q)
+        r = obs - q
+        z = r / m
+        for c in range(n_ch):
+            ok = np.isfinite(z[:, c]) & (m[:, c] > 0)
+            d_c = dq[:, c, 1] if dq is not None else np.zeros(q.shape[0])
+            ok &= np.isfinite(d_c)
+            if ok.sum() < 3:
+                continue
+            az = np.abs(z[ok, c])
+            huber_w = np.where(az > _HUBER_K, _HUBER_K / np.where(az > 0, az, 1.0), 1.0)
+            _, _, dl = profile_chi2(r[ok, c], d_c[ok], huber_w / m[ok, c] ** 2)
+            delta[i, c] = dl
+            objective[i, c] = float(_huber_sum(((r[ok, c] - dl * d_c[ok]) / m[ok, c])[:, None], _HUBER_K)[0])
+    best = np.argmin(objective, axis=0)
+    start = theta_start.copy()
+    for c in range(n_ch):
+        if channels[c] and np.isfinite(objective[best[c], c]):
+            start[c] = grid[best[c]][c] + np.array([0.0, delta[best[c], c]])
+    info = {"channels": channels.tolist(), "renders": len(grid), "render_seconds": seconds,
+            "seconds": time.perf_counter() - t0,
+            "sigma_s_prime_per_mm": [np.exp(g[:, 0]).tolist() for g in grid],
+            "sigma_a_per_mm": [np.exp(g[:, 1]).tolist() for g in grid],
+            "objective": objective.tolist(), "delta_log_sigma_a": delta.tolist(), "best": best.tolist(),
+            "start_sigma_s_prime_per_mm": np.exp(start[:, 0]).tolist(),
+            "start_sigma_a_per_mm": np.exp(start[:, 1]).tolist()}
+    return start, info
