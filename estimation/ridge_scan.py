@@ -33,7 +33,8 @@ from numpy.typing import NDArray
 from .reference_intervals import _huber_sum
 from .single_image import SingleImageResult
 
-__all__ = ["MAX_DELTA_LOG_SA", "RIDGE_CORRELATION", "EDGE_FACTOR", "SCAN_RATIO", "SCAN_STEPS", "profile_chi2",
+__all__ = ["MAX_DELTA_LOG_SA", "RIDGE_CORRELATION", "EDGE_FACTOR", "SCAN_RATIO", "SCAN_STEPS", "SCAN_EXTEND",
+           "profile_chi2",
            "ridge_channels", "scan_ridge"]
 
 Array = NDArray[np.float64]
@@ -48,6 +49,8 @@ EDGE_FACTOR: float = 2.0
 #: the plain fit's sigma_s', clipped to the start range; duplicates after clipping are rendered once)
 SCAN_RATIO: float = 3.0
 SCAN_STEPS: tuple[int, int] = (-4, 2)
+#: at most this many more grid points past an end of the grid while the best point lies on that end
+SCAN_EXTEND: int = 2
 #: Huber threshold of the robust objective (that of the reference loop, :func:`reference_intervals._huber_sum`)
 _HUBER_K = 2.5
 
@@ -89,53 +92,87 @@ def scan_ridge(render: Callable[[Array], tuple[Array, Array, Array | None, float
                metric: Callable[[Array, Array], Array], theta_start: Array, ssp_range_per_mm: tuple[float, float],
                channels: NDArray[np.bool_]) -> tuple[Array, dict[str, Any]]:
     """Scan the ridge of constant albedo through ``theta_start`` (C, 2: log sigma_s', log sigma_a per channel) on
-    the grid f = :data:`SCAN_RATIO` ** k (module docstring); return the start (C, 2) — the best grid point with its
+    the grid f = :data:`SCAN_RATIO` ** k (module docstring), extended by up to :data:`SCAN_EXTEND` more points past
+    an end of the grid where the best point lies on it; return the start (C, 2) — the best grid point with its
     first-order sigma_a refit where ``channels``, ``theta_start`` elsewhere — and a JSON-able record of the scan.
 
     ``render(theta) -> (radiance (m, C), stderr (m, C), d_radiance (m, C, 2) or None, seconds)`` over the observed
     rows, all with one seed; ``metric(stderr, radiance) -> (m, C)`` the standard deviation an observation is
-    compared with a render by (the reference loop's); ``obs`` (m, C) NaN where not observed."""
+    compared with a render by (the reference loop's); ``obs`` (m, C) NaN where not observed. Channels render
+    independently, so each render carries every channel's own grid point (its start where it has none left)."""
     n_ch = theta_start.shape[0]
     lo, hi = np.log(ssp_range_per_mm[0]), np.log(ssp_range_per_mm[1])
-    ks = np.arange(SCAN_STEPS[0], SCAN_STEPS[1] + 1)
-    log_f = ks * np.log(SCAN_RATIO)
-    grid: list[Array] = []
-    for lf in log_f:
-        ssp = np.where(channels, np.clip(theta_start[:, 0] + lf, lo, hi), theta_start[:, 0])
-        th = np.stack([ssp, theta_start[:, 1] + (ssp - theta_start[:, 0])], axis=1)  # albedo held
-        if not any(np.allclose(th, g, rtol=0, atol=1e-9) for g in grid):
-            grid.append(th)
-    objective = np.full((len(grid), n_ch), np.inf)
-    delta = np.zeros((len(grid), n_ch))
-    seconds = []
+
+    step = np.log(SCAN_RATIO)
+
+    def point(c: int, k: int) -> Array | None:
+        """Channel c's grid point k (albedo held); outside the range only the first point beyond each end, clipped
+        onto it (unless an inner point lies there already), else None."""
+        s0 = theta_start[c, 0]
+        s = s0 + k * step
+        if s < lo - 1e-9 or s > hi + 1e-9:
+            inner = s0 + (k + (1 if s < lo else -1)) * step  # the neighbour towards the range
+            if not lo - 1e-9 <= inner <= hi + 1e-9 or abs(inner - (lo if s < lo else hi)) < 1e-9:
+                return None
+        t = float(np.clip(s, lo, hi))
+        return np.array([t, theta_start[c, 1] + (t - s0)])
+
+    ks = [[k for k in range(SCAN_STEPS[0], SCAN_STEPS[1] + 1) if point(c, k) is not None] if channels[c] else []
+          for c in range(n_ch)]
+    rec: list[dict[int, tuple[float, float]]] = [{} for _ in range(n_ch)]  # k -> (objective, delta log sigma_a)
+    seconds: list[float] = []
     t0 = time.perf_counter()
-    for i, th in enumerate(grid):
-        q, se, dq, s = render(th)
-        seconds.append(s)
+
+    def run(todo: list[int | None]) -> None:
+        th = theta_start.copy()
+        for c, k in enumerate(todo):
+            if k is not None:
+                th[c] = point(c, k)
+        q, se, dq, sec = render(th)
+        seconds.append(sec)
         m = metric(se, q)
         r = obs - q
-        z = r / m
-        for c in range(n_ch):
-            ok = np.isfinite(z[:, c]) & (m[:, c] > 0)
-            d_c = dq[:, c, 1] if dq is not None else np.zeros(q.shape[0])
-            ok &= np.isfinite(d_c)
-            if ok.sum() < 3:
+        for c, k in enumerate(todo):
+            if k is None:
                 continue
-            az = np.abs(z[ok, c])
+            d_c = dq[:, c, 1] if dq is not None else np.zeros(q.shape[0])
+            ok = np.isfinite(r[:, c]) & np.isfinite(m[:, c]) & (m[:, c] > 0) & np.isfinite(d_c)
+            if ok.sum() < 3:
+                rec[c][k] = (np.inf, 0.0)
+                continue
+            az = np.abs(r[ok, c] / m[ok, c])
             huber_w = np.where(az > _HUBER_K, _HUBER_K / np.where(az > 0, az, 1.0), 1.0)
             _, _, dl = profile_chi2(r[ok, c], d_c[ok], huber_w / m[ok, c] ** 2)
-            delta[i, c] = dl
-            objective[i, c] = float(_huber_sum(((r[ok, c] - dl * d_c[ok]) / m[ok, c])[:, None], _HUBER_K)[0])
-    best = np.argmin(objective, axis=0)
+            rec[c][k] = (float(_huber_sum(((r[ok, c] - dl * d_c[ok]) / m[ok, c])[:, None], _HUBER_K)[0]), dl)
+
+    for i in range(max((len(x) for x in ks), default=0)):
+        run([ks[c][i] if i < len(ks[c]) else None for c in range(n_ch)])
+    for _ in range(SCAN_EXTEND):  # the best point on an end of the grid: one more step past it
+        todo: list[int | None] = [None] * n_ch
+        for c in range(n_ch):
+            if not rec[c]:
+                continue
+            best = min(rec[c], key=lambda k: rec[c][k][0])
+            for nxt in (best - 1, best + 1):
+                if (nxt < min(rec[c]) or nxt > max(rec[c])) and point(c, nxt) is not None \
+                        and np.isfinite(rec[c][best][0]):
+                    todo[c] = nxt
+        if all(t is None for t in todo):
+            break
+        run(todo)
     start = theta_start.copy()
+    best_k: list[int | None] = [None] * n_ch
     for c in range(n_ch):
-        if channels[c] and np.isfinite(objective[best[c], c]):
-            start[c] = grid[best[c]][c] + np.array([0.0, delta[best[c], c]])
-    info = {"channels": channels.tolist(), "renders": len(grid), "render_seconds": seconds,
-            "seconds": time.perf_counter() - t0,
-            "sigma_s_prime_per_mm": [np.exp(g[:, 0]).tolist() for g in grid],
-            "sigma_a_per_mm": [np.exp(g[:, 1]).tolist() for g in grid],
-            "objective": objective.tolist(), "delta_log_sigma_a": delta.tolist(), "best": best.tolist(),
-            "start_sigma_s_prime_per_mm": np.exp(start[:, 0]).tolist(),
+        if rec[c]:
+            k = min(rec[c], key=lambda k: rec[c][k][0])
+            if np.isfinite(rec[c][k][0]):
+                best_k[c] = k
+                start[c] = point(c, k) + np.array([0.0, rec[c][k][1]])
+    info = {"channels": channels.tolist(), "renders": len(seconds), "render_seconds": seconds,
+            "seconds": time.perf_counter() - t0, "ratio": SCAN_RATIO,
+            "grid": [[{"k": k, "sigma_s_prime_per_mm": float(np.exp(point(c, k)[0])),
+                       "sigma_a_per_mm": float(np.exp(point(c, k)[1])), "objective": rec[c][k][0],
+                       "delta_log_sigma_a": rec[c][k][1]} for k in sorted(rec[c])] for c in range(n_ch)],
+            "best_k": best_k, "start_sigma_s_prime_per_mm": np.exp(start[:, 0]).tolist(),
             "start_sigma_a_per_mm": np.exp(start[:, 1]).tolist()}
     return start, info

@@ -49,20 +49,27 @@ def test_the_scan_brings_a_start_far_along_the_ridge_back_to_the_truth() -> None
     assert abs(out[0, 1] - (start[0, 1] - 4 * np.log(SCAN_RATIO))) <= MAX_DELTA_LOG_SA + 1e-12
     # channel 1 was not asked for: its start is unchanged
     np.testing.assert_array_equal(out[1], start[1])
-    # every grid point rendered once, channel 1 at its start each time
-    assert info["renders"] == len(calls) == 7
+    # every grid point rendered once (k = -4..2), one more past the low end where the best point lay (k = -5),
+    # channel 1 at its start each time
+    assert info["renders"] == len(calls) == 8
+    assert [g["k"] for g in info["grid"][0]] == list(range(-5, 3)) and info["grid"][1] == []
     assert all(np.allclose(th[1], start[1]) for th in calls)
     # albedo held along the grid
     assert all(np.isclose(th[0, 0] - th[0, 1], start[0, 0] - start[0, 1]) for th in calls)
-    assert info["best"][0] == 0
+    assert info["best_k"] == [-4, None]
 
 
 def test_the_grid_is_clipped_to_the_start_range_and_rendered_once_per_point() -> None:
     obs, _, _, _ = _render(TRUTH)
     start = np.log(np.array([[50.0, 0.1], [50.0, 0.1]]))
     out, info = scan_ridge(lambda th: _render(th), obs, _metric, start, (0.02, 50.0), np.array([True, True]))
-    ssp = np.array(info["sigma_s_prime_per_mm"])
-    assert ssp.max() <= 50.0 + 1e-9 and ssp.shape[0] == 5  # 50 * 3^k, k = -4..0 (the upper points clip to 50)
+    ssp = [g["sigma_s_prime_per_mm"] for g in info["grid"][0]]
+    # 50 * 3^k, k = -4..0 (the upper points lie outside the range: 50 itself is the end), then past the low end
+    # while the best point lies on it (the truth is 0.7 and 1.2 /mm: k = -5 is 0.21 /mm)
+    assert max(ssp) == pytest.approx(50.0) and len(set(np.round(ssp, 9))) == len(ssp)
+    assert [g["k"] for g in info["grid"][0]] == [-5, -4, -3, -2, -1, 0]
+    assert [g["k"] for g in info["grid"][1]] == [-4, -3, -2, -1, 0]  # best inside (k = -3: 1.85 /mm)
+    assert info["best_k"] == [-4, -3] and info["renders"] == 6
 
 
 def test_profile_chi2_refits_sigma_a_to_first_order_and_clips_the_step() -> None:
