@@ -81,9 +81,11 @@ def test_profile_chi2_refits_sigma_a_to_first_order_and_clips_the_step() -> None
     assert delta == MAX_DELTA_LOG_SA
 
 
-def _result(ssp: list[float], corr: list[float], status: list[str]) -> SingleImageResult:
+def _result(ssp: list[float], corr: list[float], status: list[str], sa: list[float] | None = None
+            ) -> SingleImageResult:
     return SingleImageResult(True, "ok", "direct", "mc-table", 1.3, sigma_s_prime_per_mm=np.array(ssp),
-                             sigma_a_per_mm=np.full(len(ssp), 0.01), correlation_log=np.array(corr),
+                             sigma_a_per_mm=np.full(len(ssp), 0.01) if sa is None else np.array(sa),
+                             correlation_log=np.array(corr),
                              extra={"status": {"sigma_s_prime_per_mm": status, "sigma_a_per_mm": status}})
 
 
@@ -95,3 +97,6 @@ def test_ridge_channels_picks_edge_fits_and_weak_fits_on_the_ridge_only() -> Non
     want, why = ridge_channels(r, rng)
     assert want.tolist() == [True, True, False, False, True]
     assert "edge" in why[0] and "ridge" in why[1] and why[2] == "" and why[3] == ""
+    # sigma_a at its floor (albedo 1: no ridge to hold) is not scanned, unless sigma_s' is at the edge
+    r = _result([1.0, 1e3], [1.0, 1.0], ["weak", "weak"], sa=[1e-7, 1e-7])
+    assert ridge_channels(r, rng)[0].tolist() == [False, True]
