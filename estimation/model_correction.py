@@ -399,7 +399,7 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
             # the plain fit's standard errors say nothing about the scan's point: the first trust region is the
             # radius about it (else +-3 of the plain fit's standard errors, ~30 in log on the ridge, let the first
             # refit run back to the plain fit's edge)
-            se_floor &= ~scan_ch
+            se_floor &= ~np.asarray(scan_info["moved"], bool)
     gn_mode = np.zeros(n_ch, bool)  # channels stepping on the reference's linearization (after a rejected step)
     acc: _Correction | None = None
     acc_fit: SingleImageResult | None = None

@@ -100,3 +100,13 @@ def test_ridge_channels_picks_edge_fits_and_weak_fits_on_the_ridge_only() -> Non
     # sigma_a at its floor (albedo 1: no ridge to hold) is not scanned, unless sigma_s' is at the edge
     r = _result([1.0, 1e3], [1.0, 1.0], ["weak", "weak"], sa=[1e-7, 1e-7])
     assert ridge_channels(r, rng)[0].tolist() == [False, True]
+
+
+def test_the_start_stays_where_the_frame_does_not_clearly_prefer_another_point() -> None:
+    obs, _, _, _ = _render(TRUTH)
+    start = TRUTH + np.log(100.0)
+    # a noise level so large that the whole ridge fits alike: the plain fit's point is kept as it is
+    out, info = scan_ridge(lambda th: _render(th), obs, lambda se, q: np.full_like(q, 10.0), start, (0.02, 1000.0),
+                           np.array([True, True]))
+    np.testing.assert_array_equal(out, start)
+    assert info["moved"] == [False, False] and info["renders"] >= 7
