@@ -89,17 +89,19 @@ def _result(ssp: list[float], corr: list[float], status: list[str], sa: list[flo
                              extra={"status": {"sigma_s_prime_per_mm": status, "sigma_a_per_mm": status}})
 
 
-def test_ridge_channels_picks_edge_fits_and_weak_fits_on_the_ridge_only() -> None:
+def test_ridge_channels_picks_fits_at_the_edge_and_names_the_ridge() -> None:
     rng = (0.02, 50.0)
     r = _result([1e3, 1.0, 1.0, 1.0, 0.02 * EDGE_FACTOR],
                 [0.0, RIDGE_CORRELATION + 0.01, RIDGE_CORRELATION + 0.01, 0.1, 0.0],
                 ["weak", "weak", "ok", "weak", "ok"])
     want, why = ridge_channels(r, rng)
-    assert want.tolist() == [True, True, False, False, True]
+    # only the edge starts a scan; a weak fit on the ridge is named in the reasons
+    assert want.tolist() == [True, False, False, False, True]
     assert "edge" in why[0] and "ridge" in why[1] and why[2] == "" and why[3] == ""
-    # sigma_a at its floor (albedo 1: no ridge to hold) is not scanned, unless sigma_s' is at the edge
+    # sigma_a at its floor (albedo 1) is no ridge; the edge still starts a scan
     r = _result([1.0, 1e3], [1.0, 1.0], ["weak", "weak"], sa=[1e-7, 1e-7])
-    assert ridge_channels(r, rng)[0].tolist() == [False, True]
+    want, why = ridge_channels(r, rng)
+    assert want.tolist() == [False, True] and why[0] == "" and "ridge" not in why[1]
 
 
 def test_the_start_stays_where_the_frame_does_not_clearly_prefer_another_point() -> None:
