@@ -9,6 +9,7 @@ ray casting through the one ray engine (estimation.rays) and its centre sampled 
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import platform
@@ -329,9 +330,8 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
         ref, ref_info = scene_reference(scene, patches, valid_px, spp=spp)  # SceneFileError before any fit
         # the start's scan along the ridge of constant albedo (estimation.ridge_scan): cheap renders, score-function
         # derivatives only (the sigma_a refit; no paired difference in sigma_s')
-        scan_ref, _ = scene_reference(scene, patches, valid_px, spp=max(RIDGE_SCAN_MIN_SPP,
-                                                                        spp // RIDGE_SCAN_SPP_DIVISOR))
-        scan_ref.fd_log_sigma_s = 0.0
+        scan_ref = dataclasses.replace(ref, spp=max(RIDGE_SCAN_MIN_SPP, spp // RIDGE_SCAN_SPP_DIVISOR),
+                                       fd_log_sigma_s=0.0, renders=[])
         try:
             res = estimate_with_reference(obs, patches, e_t, scene.material.eta, ref, base_model="mc-table",
                                           max_iterations=iterations, seed=ref_seed, scan_reference=scan_ref,
