@@ -15,7 +15,9 @@ The estimate is the maximum-likelihood fit of the *reference* Q(theta) to the ob
 (sigma_s', sigma_a) per channel), found by a trust-region Gauss-Newton iteration in which the fast model M(theta)
 (``base_model``, default ``"mc-table"``) supplies the nonlinearity between renders:
 
-1. fit the fast model: theta_0 (the plain estimate);
+1. fit the fast model: theta_0 (the plain estimate); where its sigma_s' is at the edge of :data:`START_SSP_RANGE`
+   (or beyond) and a cheap ``scan_reference`` is given, start instead from the best of a coarse scan of its renders
+   along the ridge of constant albedo (:mod:`estimation.ridge_scan`);
 2. render the reference at the current point theta_i: Q, its standard error and, when the reference provides them,
    its derivatives Q' = dQ/dtheta from the same paths (:func:`simulators.mc.render` with ``derivatives=True``: the
    score function for log sigma_a, a paired forward difference over the same paths for log sigma_s', whose score
