@@ -148,7 +148,9 @@ def run_model(scene: Any, model: str, spec: SceneSpec, ref_spp: int, ref_iterati
     out = {"model": model, "seconds": seconds, "success": bool(res.get("success")), "message": res.get("message"),
            "warnings": rec["warnings"], "stderr_lines": lines, "exception": exc,
            "n_warnings": len(rec["warnings"]) + len(lines) + (exc is not None), "converged": res.get("converged"),
-           "renders": len(ref.get("renders") or []), "status": res.get("status"),
+           "renders": len(ref.get("renders") or []), "scan_renders": len(ref.get("scan_renders") or []),
+           "ridge_scan": ref.get("ridge_scan"),
+           "status": res.get("status"),
            "rows": evaluate(res, model, list(spec.sigma_s_prime_per_mm), list(spec.sigma_a_per_mm))}
     if ref:
         steps, cum = [], 0.0
@@ -191,14 +193,15 @@ def print_scene(spec: SceneSpec, meta: dict[str, Any], folder: Path, results: li
     print(f"file check: image / Monte Carlo reference rendered from the scene file at the truth (sums over the "
           f"observed patches): {', '.join(f'{x:.3f}' for x in meta['file_check'])}")
     print("\n| model | ch | sigma_s' | err | 95 % | covers | status | sigma_a | err | 95 % | covers | status | renders "
-          "| s | warn |")
+          "(+ the start's ridge scan, at spp / 4) | s | warn |")
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in results:
         for row in r["rows"]:
             print(f"| {r['model']} | {spec.channels[row['channel']]} | {row['value_s']:.4g} | {_pct(row['err_s'])} | "
                   f"{_ci(row['ci_s'])} | {row['covers_s']} | {row['status_s']} | {row['value_a']:.4g} | "
                   f"{_pct(row['err_a'])} | {_ci(row['ci_a'])} | {row['covers_a']} | {row['status_a']} | "
-                  f"{r['renders']} | {r['seconds']:.1f} | {r['n_warnings']} |")
+                  f"{r['renders']}{f' + {n} scan' if (n := r.get('scan_renders')) else ''} | {r['seconds']:.1f} | "
+                  f"{r['n_warnings']} |")
     for r in results:
         if not r["success"]:
             print(f"- {r['model']} failed: {r['message']}")

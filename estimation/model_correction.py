@@ -15,7 +15,9 @@ The estimate is the maximum-likelihood fit of the *reference* Q(theta) to the ob
 (sigma_s', sigma_a) per channel), found by a trust-region Gauss-Newton iteration in which the fast model M(theta)
 (``base_model``, default ``"mc-table"``) supplies the nonlinearity between renders:
 
-1. fit the fast model: theta_0 (the plain estimate);
+1. fit the fast model: theta_0 (the plain estimate); where its sigma_s' is at the edge of :data:`START_SSP_RANGE`
+   (or beyond) and a cheap ``scan_reference`` is given, start instead from the best of a coarse scan of its renders
+   along the ridge of constant albedo (:mod:`estimation.ridge_scan`);
 2. render the reference at the current point theta_i: Q, its standard error and, when the reference provides them,
    its derivatives Q' = dQ/dtheta from the same paths (:func:`simulators.mc.render` with ``derivatives=True``: the
    score function for log sigma_a, a paired forward difference over the same paths for log sigma_s', whose score
@@ -28,7 +30,8 @@ The estimate is the maximum-likelihood fit of the *reference* Q(theta) to the ob
    the scene responds to the parameters as the fast model does to B times them — half as much to sigma_a on a
    small body —; shrunk towards the identity by its Monte Carlo standard error),
 
-   per patch: multiplicative (kappa = Q / M, a = 0) where the render has signal (Q above 5 standard errors and M > 0),
+   per patch (:mod:`.reference_correction` builds F_i): multiplicative (kappa = Q / M, a = 0) where the render
+   has signal (Q above 5 standard errors and M > 0),
    additive (kappa = 1, a = Q - M) where it has not — a patch the light does not reach, whose render is noise around
    zero, is never divided by (this is how the former defect-correction loop collapsed: kappa 0.008-0.09 on an unlit
    face, sigma_s' -97 %, "converged"). kappa, a and D are averaged over neighbouring patches of the same face (within
@@ -88,12 +91,13 @@ from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.sparse import csr_matrix
-from scipy.spatial import cKDTree
 
+from .reference_correction import (SIGNAL_SE, SLOPE_SMOOTH_SPACINGS, _build, _Correction, _smoothing_operator,
+                                   _visible_rows)
 from .reference_intervals import (_ASSUMED_SLOPE, FLAT_SPAN, MISFIT_CHI2, RESOLVED_OBJECTIVE, SECANT_SLOPE_BOUNDS,
                                   _cover, _derivative_noise_factor, _flat_likelihood, _huber_sum, _hull,
                                   _secant_slope, _widen)
+from .ridge_scan import ridge_channels, scan_ridge
 from .single_image import (MAX_OK_INTERVAL_RATIO, Lights, Patches, SingleImageResult, _box_qp_2d,
                            estimate_single_image, map_parameters, parameter_status, patch_irradiance, predict_radiance,
                            sigma_a_verdict)
@@ -108,17 +112,11 @@ _Z95 = 1.959963984540054
 SETTLE_SD_FRACTION: float = 0.5
 #: a rejected step shorter than this many standard errors is a statistical tie with the accepted point: converged
 TIE_SD: float = 1.0
-#: a patch's reference enters multiplicatively (kappa = Q / M) only when Q exceeds this many standard errors
-SIGNAL_SE: float = 5.0
 #: the first render's sigma_s' is kept inside this range (per mm): a plain fit at the edge of its search range
 #: (1e-3 or 1e3 /mm, seen on a 5 mm skimmilk pyramid with l_d 18 mm) would cost hours of Monte Carlo walks
 START_SSP_RANGE: tuple[float, float] = (0.02, 50.0)
 #: initial trust-region radius in log parameters (a factor e^0.7 ~ 2) and its bounds
 TRUST_RADIUS_START, TRUST_RADIUS_MIN, TRUST_RADIUS_MAX = 0.7, 0.01, 3.0
-#: the derivative of the correction is averaged over growing neighbourhoods (in patch spacings) until its standard
-#: error is below SLOPE_REL_SE of the derivative's magnitude (:func:`_adaptive_slope`)
-SLOPE_SMOOTH_SPACINGS: tuple[float, ...] = (1.5, 3.0, 6.0, 12.0)
-SLOPE_REL_SE: float = 0.2
 #: step of the fast model's central differences in log parameters
 _FAST_FD_STEP = 1e-3
 
@@ -160,73 +158,6 @@ class ReferenceStep:
         return dict(self.__dict__)
 
 
-@dataclass
-class _Correction:
-    """The reference at one rendered point and the corrected model built from it (rows = visible patches)."""
-
-    theta: Array      # (C, 2) log parameters rendered
-    q: Array          # (m, C)
-    q_se: Array       # (m, C)
-    kappa: Array      # (m, C) smoothed; 1 on additive rows
-    kappa_var: Array
-    shift: Array      # (m, C) additive part a (0 on multiplicative rows)
-    shift_var: Array
-    slope: Array      # (m, C, 2) D = Q' - kappa M' B (0 without derivatives)
-    matrix: Array     # (C, 2, 2) the parameter map B (identity without derivatives)
-    objective: Array  # (C,) the reference's robust objective at theta
-    additive: NDArray[np.bool_]
-    dq: Array | None = None     # (m, C, 2) the reference's derivatives as rendered (unsmoothed)
-    dq_se: Array | None = None
-    jac: Array | None = None    # (m, C, 2) the corrected model's derivatives at theta: kappa M' B + D
-
-
-def _visible_rows(values: ArrayLike, name: str, patches: Patches, n_ch: int, tail: tuple[int, ...] = ()) -> Array:
-    a = np.asarray(values, dtype=np.float64)
-    if a.ndim == 1 + len(tail):
-        a = a[:, None]
-    vis = patches.visible_index
-    k_all = patches.centers_mm.shape[0]
-    if a.ndim != 2 + len(tail) or a.shape[0] not in (vis.size, k_all) or a.shape[2:] != tail:
-        raise ValueError(f"{name} has shape {np.shape(values)}; expected ({vis.size}, C{''.join(f', {t}' for t in tail)})"
-                         f" visible patches or ({k_all}, C{''.join(f', {t}' for t in tail)}) patches")
-    if a.shape[0] == k_all and k_all != vis.size:
-        a = a[vis]
-    if a.shape[1] not in (1, n_ch):
-        raise ValueError(f"{name} has {a.shape[1]} channels; expected 1 or {n_ch}")
-    return np.array(np.broadcast_to(a, (a.shape[0], n_ch) + tail))
-
-
-def _smoothing_operator(patches: Patches, radius_mm: float, cos_min: float = float(np.cos(np.radians(25.0)))
-                        ) -> csr_matrix | None:
-    """(m, m) 0/1 neighbour operator over the visible patches (self included): patches within ``radius_mm``
-    whose normals differ by less than 25 deg (a mean never straddles a sharp edge). None when radius_mm <= 0."""
-    if not radius_mm > 0:
-        return None
-    vis = patches.visible_index
-    x = patches.centers_mm[vis]
-    n = patches.normals[vis]
-    pairs = cKDTree(x).query_pairs(float(radius_mm), output_type="ndarray")
-    keep = np.einsum("ij,ij->i", n[pairs[:, 0]], n[pairs[:, 1]]) >= cos_min
-    i = np.concatenate([pairs[keep, 0], pairs[keep, 1], np.arange(vis.size)])
-    j = np.concatenate([pairs[keep, 1], pairs[keep, 0], np.arange(vis.size)])
-    return csr_matrix((np.ones(i.size), (i, j)), shape=(vis.size, vis.size))
-
-
-def _weighted_mean(op: csr_matrix | None, value: Array, var: Array, use: NDArray[np.bool_]) -> tuple[Array, Array]:
-    """Inverse-variance neighbour mean of ``value`` over the rows where ``use`` (per column) and its variance; rows
-    without a usable neighbour get NaN."""
-    ok = use & np.isfinite(value) & np.isfinite(var) & (var > 0)
-    w = np.where(ok, 1.0 / np.where(ok, var, 1.0), 0.0)
-    if op is None:
-        den, num = w, w * np.where(ok, value, 0.0)
-    else:
-        den = op @ w
-        num = op @ (w * np.where(ok, value, 0.0))
-    have = den > 0
-    return np.where(have, num / np.where(have, den, 1.0), np.nan), np.where(have, 1.0 / np.where(have, den, 1.0),
-                                                                            np.nan)
-
-
 def _fast_model(patches: Patches, e_t: Array, eta: float, theta: Array, model: str) -> tuple[Array, Array]:
     """The fast model's radiance M (m, C) at theta (C, 2) and its central-difference derivatives (m, C, 2), in one
     system build (the channels and the five stencil points side by side)."""
@@ -256,111 +187,6 @@ def _render(reference: Any, theta: Array, eta: float, seed: int, patches: Patche
     d = _visible_rows(out[2], "reference derivatives", patches, n_ch, (2,))
     d_se = _visible_rows(out[3], "reference derivative stderr", patches, n_ch, (2,))
     return q, se, d, d_se, seconds
-
-
-def _adaptive_slope(raw: Array, raw_se: Array, scale: Array, smoothers: list[csr_matrix | None]) -> Array:
-    """Neighbour means of the correction's derivative ``raw`` (m, C, 2), per patch over the smallest of the
-    ``smoothers`` (growing radii) whose mean has a standard error below :data:`SLOPE_REL_SE` x ``scale`` (the
-    magnitude of the whole derivative there), else the largest. The score-function derivatives are noisy per patch
-    (d/d log sigma_s' ~100-200 % at 128 spp) and their noise, squared in the fit's normal equations, would shorten
-    every Gauss-Newton step (regression dilution: measured steps of ~0.6 of the way on an index-matched cube)."""
-    out = np.zeros_like(raw)
-    done = np.zeros(raw.shape, bool)
-    ok = np.isfinite(raw) & np.isfinite(raw_se)
-    v = np.where(ok, raw, 0.0)
-    v2 = np.where(ok, raw_se ** 2, 0.0)
-    for k, op in enumerate(smoothers):
-        n_raw = ok.astype(np.float64)
-        if op is None:
-            cnt, mean_num, var_num = n_raw, v, v2
-        else:
-            shp = raw.shape
-            flat = lambda a: a.reshape(shp[0], -1)  # noqa: E731
-            cnt = (op @ flat(n_raw)).reshape(shp)
-            mean_num = (op @ flat(v)).reshape(shp)
-            var_num = (op @ flat(v2)).reshape(shp)
-        have = cnt > 0
-        mean = np.where(have, mean_num / np.where(have, cnt, 1.0), 0.0)
-        se = np.where(have, np.sqrt(var_num) / np.where(have, cnt, 1.0), np.inf)
-        take = ~done & have & ((se <= SLOPE_REL_SE * scale) | (k == len(smoothers) - 1))
-        out[take] = mean[take]
-        done |= take
-    return out
-
-
-def _parameter_map(dq: Array, dq_se: Array, dm: Array, use: NDArray[np.bool_], weight: Array) -> Array:
-    """Per channel the 2 x 2 map B with Q' ~ (kappa M') B over the patches: the reference responds to the parameters
-    as the fast model responds to B times them (space mapping; Bandler et al. 1994, "Space mapping technique for
-    electromagnetic optimization", IEEE T-MTT 42(12)). Weighted least squares (the derivative noise enters linearly:
-    no regression dilution), each column then shrunk towards the identity's by the positive-part James-Stein factor
-    1 - tr Var / |B_ls - I|^2 (Var from the derivatives' standard errors, the sandwich of the least squares): a map
-    the Monte Carlo derivatives do not resolve (at 32 spp the column of d/d log sigma_s' moved by ~1 between renders)
-    stays the fast model's own (B = I, the plain defect correction)."""
-    n_ch = dq.shape[1]
-    out = np.broadcast_to(np.eye(2), (n_ch, 2, 2)).copy()
-    for c in range(n_ch):
-        ok = use[:, c] & np.isfinite(weight[:, c]) & np.all(np.isfinite(dm[:, c]), axis=1) & np.all(
-            np.isfinite(dq_se[:, c]), axis=1)
-        if ok.sum() < 3:
-            continue
-        w = weight[ok, c]
-        x, y, se = dm[ok, c], dq[ok, c], dq_se[ok, c]
-        xtx = (x * w[:, None]).T @ x
-        lam = 1e-3 * max(float(np.trace(xtx)) / 2.0, 1e-300)
-        try:
-            inv = np.linalg.inv(xtx + lam * np.eye(2))
-        except np.linalg.LinAlgError:
-            continue
-        b = inv @ ((x * w[:, None]).T @ y + lam * np.eye(2))  # (2 in, 2 out): Q' ~ M' b
-        for j in range(2):
-            meat = (x * (w * w * se[:, j] ** 2)[:, None]).T @ x
-            var_tr = float(np.trace(inv @ meat @ inv))
-            dev = b[:, j] - np.eye(2)[:, j]
-            dev2 = float(dev @ dev)
-            shrink = max(0.0, 1.0 - var_tr / dev2) if dev2 > 0 else 0.0
-            b[:, j] = np.eye(2)[:, j] + shrink * dev
-        if np.all(np.isfinite(b)):
-            out[c] = b  # theta_c = theta_i + B (theta - theta_i), so d(M o P)/d theta = M' B (rows: Q'_row ~ M'_row B)
-    return out
-
-
-def _build(theta: Array, q: Array, se: Array, dq: Array | None, dq_se: Array | None, m: Array, dm: Array,
-           smoother: csr_matrix | None, slope_smoothers: list[csr_matrix | None], objective: Array,
-           weight: Array) -> _Correction:
-    good = np.isfinite(q) & np.isfinite(se) & np.isfinite(m)
-    mult = good & (q > SIGNAL_SE * se) & (m > 0) & (q > 0)
-    safe_m = np.where(mult, m, 1.0)
-    kappa_raw = np.where(mult, q / safe_m, np.nan)
-    kvar_raw = np.where(mult, (se / safe_m) ** 2, np.nan)
-    # the smoothed corrections are means over ~n neighbours, but neighbours share them: their errors are correlated,
-    # so each patch keeps the variance of its own render value (not 1/n of it), which is what the refit's sum over
-    # patches sees (with the mean's variance the reference noise entered the intervals ~sqrt(n) = 2.6x too small)
-    kappa, _ = _weighted_mean(smoother, kappa_raw, kvar_raw, mult)
-    kappa_var = np.where(np.isfinite(kvar_raw), kvar_raw, (se / np.where(m > 0, m, np.inf)) ** 2)
-    add = good & ~(mult & np.isfinite(kappa))
-    shift, _ = _weighted_mean(smoother, q - m, np.maximum(se, 1e-300) ** 2, add)
-    shift_var = se ** 2
-    kappa = np.where(add, 1.0, kappa)
-    kappa_var = np.where(add, 0.0, kappa_var)
-    shift = np.where(add, np.where(np.isfinite(shift), shift, q - m), 0.0)
-    shift_var = np.where(add, np.where(np.isfinite(shift_var), shift_var, se ** 2), 0.0)
-    n_ch = q.shape[1]
-    matrix = np.broadcast_to(np.eye(2), (n_ch, 2, 2)).copy()
-    if dq is None or dq_se is None:
-        slope = np.zeros(q.shape + (2,))
-    else:
-        matrix = _parameter_map(dq, dq_se, kappa[..., None] * dm, good & np.all(np.isfinite(dq), axis=2), weight)
-        raw = np.where(good[..., None], dq - np.einsum("mck,ckj->mcj", kappa[..., None] * dm, matrix), np.nan)
-        # the magnitude the noise is judged against: the derivative as the widest neighbourhood sees it (low noise)
-        wide = _adaptive_slope(np.where(good[..., None], dq, np.nan), dq_se, np.zeros_like(dq), slope_smoothers[-1:])
-        scale = np.abs(wide)
-        scale = np.maximum(scale, 0.05 * np.nanmax(np.where(good[..., None], scale, np.nan), axis=0, keepdims=True))
-        slope = _adaptive_slope(raw, dq_se, np.nan_to_num(scale, nan=np.inf), slope_smoothers)
-    bad = ~good
-    kappa[bad], kappa_var[bad], shift[bad], shift_var[bad] = np.nan, np.nan, np.nan, np.nan
-    jac = None if dq is None else np.einsum("mck,ckj->mcj", kappa[..., None] * dm, matrix) + slope
-    return _Correction(theta.copy(), q, se, kappa, kappa_var, shift, shift_var, slope, matrix, objective, add & good,
-                       dq, dq_se, jac)
 
 
 def _search_box(theta: Array, radius: Array, prev: SingleImageResult, se_floor: NDArray[np.bool_]) -> Array:
@@ -487,14 +313,17 @@ def estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, ligh
                             reference: ReferenceRenderer, *, noise_sigma: ArrayLike | None = None,
                             base_model: str = "mc-table", max_iterations: int = 6, rel_tol: float = 0.0,
                             seed: int = 1, smooth_spacings: float = 1.5, min_iterations: int | None = None,
-                            **fit_kwargs: Any) -> SingleImageResult:
+                            scan_reference: ReferenceRenderer | None = None, **fit_kwargs: Any) -> SingleImageResult:
     """Fit the reference's radiance to the observations by trust-region Gauss-Newton steps of the corrected fast
     model (module docstring).
 
     ``observed_radiance``, ``noise_sigma``, ``patches``, ``lights``, ``eta`` and ``fit_kwargs`` are those of
     :func:`estimation.single_image.estimate_single_image` ("direct" method). ``reference`` is called at most
     ``max_iterations`` times (at least ``min_iterations``), always with ``seed``. ``rel_tol`` > 0 also counts a
-    refit within that relative change of its accepted point as converged. Returns the last accepted refit with
+    refit within that relative change of its accepted point as converged. ``scan_reference``, optional: a cheap
+    renderer of the same scene (low spp; derivatives with respect to log sigma_a help) for the start: channels whose
+    plain fit is at its range's edge or weak on the ridge of constant albedo start from the best point of a coarse
+    scan of its renders along that ridge (:mod:`estimation.ridge_scan`; ``extra["ridge_scan"]``). Returns the last accepted refit with
     ``model`` ``"<base_model>+reference"``, ``extra["reference"]`` (every step: the point rendered, the refit, rho,
     the trust radius, the correction's statistics, seconds), ``extra["converged"]`` (per channel in
     ``extra["converged_per_channel"]``), ``extra["status"]`` / ``["status_reasons"]`` (:func:`parameter_status`),
@@ -505,13 +334,15 @@ def estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, ligh
         min_iterations = min(2, max_iterations)
     with np.errstate(all="ignore"):  # no numerical warning reaches the user: the status and message say it
         return _estimate_with_reference(observed_radiance, patches, lights, eta, reference, noise_sigma, base_model,
-                                        max_iterations, rel_tol, seed, smooth_spacings, min_iterations, fit_kwargs)
+                                        max_iterations, rel_tol, seed, smooth_spacings, min_iterations, fit_kwargs,
+                                        scan_reference)
 
 
 def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lights: Lights, eta: float,
                              reference: ReferenceRenderer, noise_sigma: ArrayLike | None, base_model: str,
                              max_iterations: int, rel_tol: float, seed: int, smooth_spacings: float,
-                             min_iterations: int, fit_kwargs: dict[str, Any]) -> SingleImageResult:
+                             min_iterations: int, fit_kwargs: dict[str, Any],
+                             scan_reference: ReferenceRenderer | None = None) -> SingleImageResult:
     if max_iterations < 1:
         raise ValueError("max_iterations must be >= 1")
     if not 1 <= min_iterations <= max_iterations:
@@ -556,6 +387,21 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
     theta_try[:, 0] = np.clip(theta_try[:, 0], np.log(START_SSP_RANGE[0]), np.log(START_SSP_RANGE[1]))
     radius = np.full((n_ch, 2), TRUST_RADIUS_START)
     se_floor = np.ones(n_ch, bool)
+    scan_info: dict[str, Any] | None = None
+    if scan_reference is not None:
+        scan_ch, scan_why = ridge_channels(result, START_SSP_RANGE)
+        if scan_ch.any():
+            def render_scan(th: Array) -> tuple[Array, Array, Array | None, float]:
+                q_s, se_s, dq_s, _, s = _render(scan_reference, th, eta_f, seed, patches, n_ch)
+                return q_s, se_s, dq_s, s
+
+            theta_try, scan_info = scan_ridge(render_scan, obs, lambda se_s, q_s: _metric(sig, se_s, q_s, model_error),
+                                              theta_try, START_SSP_RANGE, scan_ch)
+            scan_info["reasons"] = scan_why
+            # the plain fit's standard errors say nothing about the scan's point: the first trust region is the
+            # radius about it (else +-3 of the plain fit's standard errors, ~30 in log on the ridge, let the first
+            # refit run back to the plain fit's edge)
+            se_floor &= ~np.asarray(scan_info["moved"], bool)
     gn_mode = np.zeros(n_ch, bool)  # channels stepping on the reference's linearization (after a rejected step)
     acc: _Correction | None = None
     acc_fit: SingleImageResult | None = None
@@ -781,6 +627,7 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
              "interval_propagation": propagation, "reference_derivatives": with_derivatives,
              "last_step_cut_by_trust_region": cut_last.tolist(),
              "reference_iterations": len(steps) - 1, "model_bias": bias, "base_model": base_model,
+             "ridge_scan": scan_info,
              "seconds_total": time.perf_counter() - t_all}
     msg = result.message
     if not with_derivatives and not np.all(propagation.get("slope_known", [[True]])):

@@ -9,6 +9,7 @@ ray casting through the one ray engine (estimation.rays) and its centre sampled 
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import platform
@@ -31,6 +32,10 @@ from .session import software_version
 
 
 __all__ = ["estimate_scene", "format_table", "run_cli"]
+
+#: mc-table+reference: the start's ridge scan (estimation.ridge_scan) renders at reference_spp / this, at least
+#: RIDGE_SCAN_MIN_SPP (128 -> 32 spp: the scan compares points a factor 3 apart, which differ far more than that noise)
+RIDGE_SCAN_SPP_DIVISOR, RIDGE_SCAN_MIN_SPP = 4, 8
 
 
 def _irradiance(scene: Scene, patches: Any) -> Array:
@@ -323,9 +328,14 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
 
         valid_px = np.all(valid, axis=2)
         ref, ref_info = scene_reference(scene, patches, valid_px, spp=spp)  # SceneFileError before any fit
+        # the start's scan along the ridge of constant albedo (estimation.ridge_scan): cheap renders, score-function
+        # derivatives only (the sigma_a refit; no paired difference in sigma_s')
+        scan_ref = dataclasses.replace(ref, spp=max(RIDGE_SCAN_MIN_SPP, spp // RIDGE_SCAN_SPP_DIVISOR),
+                                       fd_log_sigma_s=0.0, renders=[])
         try:
             res = estimate_with_reference(obs, patches, e_t, scene.material.eta, ref, base_model="mc-table",
-                                          max_iterations=iterations, seed=ref_seed, **fit_kw)
+                                          max_iterations=iterations, seed=ref_seed, scan_reference=scan_ref,
+                                          **fit_kw)
         except ValueError as exc:  # e.g. the reference has no value at any observed patch
             res = SingleImageResult(False, f"Monte Carlo reference: {exc}", meth, model_name, scene.material.eta)
         reference_out = {**ref_info, "base_model": "mc-table", "max_iterations": iterations, "seed": ref_seed,
@@ -333,6 +343,8 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
                          "interval_propagation": res.extra.get("interval_propagation"),
                          "renders": list(ref.renders),
                          "render_seconds_total": float(sum(r["seconds"] for r in ref.renders)),
+                         "ridge_scan": res.extra.get("ridge_scan"), "scan_renders": list(scan_ref.renders),
+                         "scan_render_seconds_total": float(sum(r["seconds"] for r in scan_ref.renders)),
                          "seconds_total": res.extra.get("seconds_total")}
     else:
         res = estimate_single_image(obs, patches, e_t, scene.material.eta, model=model_name, **fit_kw)

@@ -5,7 +5,8 @@ lights and map the estimator is given) at f x (sigma_s', sigma_a) of the truth, 
 0.9, 1, 1.1, 1.25): sigma_a is scaled with sigma_s', so the albedo -- which sets the brightness of a uniformly lit
 body -- is held and only the optical size of the object changes, and sigma_a is then re-optimised at every f to
 first order (the renderer's score-function derivative d Q / d log sigma_a from the same paths: chi^2 minimised
-over delta log sigma_a within +-0.7, which is printed; |delta| << 1 says the albedo-held ridge was the right one, a
+over delta log sigma_a within +-0.7 (:func:`estimation.ridge_scan.profile_chi2`, the function the reference loop's
+start scans the ridge with), which is printed; |delta| << 1 says the albedo-held ridge was the right one, a
 clipped +-0.7 that sigma_a hardly shows in the frame). Every render
 uses the same seeds (common random numbers); two seeds (``--seeds``) give an unbiased *expected* delta-chi^2.
 
@@ -51,6 +52,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from estimation.ridge_scan import profile_chi2  # noqa: E402 (the reference loop start's own profile)
 from zoo.frames import build_scene, default_root  # noqa: E402
 from zoo.nonconvex import draw_nonconvex  # noqa: E402
 from zoo.scenes import draw_zoo  # noqa: E402
@@ -103,20 +105,6 @@ def render_at(ref: Any, ssp: np.ndarray, sa: np.ndarray, eta: float, seed: int, 
             "seconds": time.perf_counter() - t0}
 
 
-#: the first-order sigma_a refit is trusted within this log step (a factor 2); larger steps are clipped to it
-MAX_DELTA_LOG_SA = 0.7
-
-
-def _profile(r: np.ndarray, d: np.ndarray, w: np.ndarray) -> tuple[float, float, float]:
-    """(chi^2 at the render, chi^2 with sigma_a re-optimised to first order within +-MAX_DELTA_LOG_SA, that
-    delta log sigma_a)."""
-    c0 = float(np.sum(w * r * r))
-    dd = float(np.sum(w * d * d))
-    rd = float(np.sum(w * r * d))
-    delta = float(np.clip(rd / dd, -MAX_DELTA_LOG_SA, MAX_DELTA_LOG_SA)) if dd > 0 else 0.0
-    return c0, float(np.sum(w * (r - delta * d) ** 2)), delta
-
-
 def _perp(x: np.ndarray, d: np.ndarray, w: np.ndarray) -> np.ndarray:
     dd = float(np.sum(w * d * d))
     return x - (float(np.sum(w * x * d)) / dd) * d if dd > 0 else x
@@ -163,7 +151,7 @@ def scene_profile(index: int, *, spp: int, seeds: list[int], factors: list[float
         chi = {}
         for f in factors:
             w = 1.0 / (v_frame + se2[f])
-            c0, cp, dl = _profile(o - mean[f]["q"], mean[f]["da"], w)
+            c0, cp, dl = profile_chi2(o - mean[f]["q"], mean[f]["da"], w)
             chi[f] = (c0, cp, dl)
         for f in factors:
             row["px"][f] = {"chi2": chi[f][0], "chi2_profile": chi[f][1], "delta_log_sigma_a": chi[f][2],
@@ -201,7 +189,7 @@ def scene_profile(index: int, *, spp: int, seeds: list[int], factors: list[float
         for f in factors:
             q, q_se2, da = pq[f]
             w = 1.0 / (sig[ok] ** 2 + q_se2[ok] + (MODEL_ERROR * q[ok]) ** 2)
-            chi_p[f] = _profile(obs[ok] - q[ok], da[ok], w)
+            chi_p[f] = profile_chi2(obs[ok] - q[ok], da[ok], w)
         for f in factors:
             row["patch"][f] = {"chi2_profile": chi_p[f][1], "dchi2_profile": chi_p[f][1] - chi_p[1.0][1],
                                "delta_log_sigma_a": chi_p[f][2]}

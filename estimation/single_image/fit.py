@@ -14,6 +14,8 @@ from scipy.linalg import lapack
 Array = NDArray[np.float64]
 _LOG_SSP_BOUNDS = (np.log(1e-3), np.log(1e3))
 _LOG_SA_MAX = np.log(50.0)
+#: the narrowest search box (log) a trust region is given
+_MIN_BOX_LOG = 1e-3
 _CHI2_1_95 = 3.841458820694124
 _Z95 = 1.959963984540054
 _JAC_STEP = 6e-6  # central-difference step of the fit Jacobians (~eps^(1/3), relative to max(1, |theta|))
@@ -382,6 +384,11 @@ def _fit_channel(problem: _Problem, sa_floor: float, n_params_dof: int = 2, know
     if box is not None:
         lb = np.clip(np.maximum(lb_all, np.asarray(box[0], dtype=np.float64)), lb_all, ub_all)
         ub = np.clip(np.minimum(ub_all, np.asarray(box[1], dtype=np.float64)), lb, ub_all)
+        # a box wholly beyond a range's end collapses onto it: keep a sliver inside (least_squares needs lb < ub;
+        # measured: a 5 mm skimmilk pyramid's trust region above sigma_s' = 1e3 /mm failed the reference loop)
+        thin = ub - lb < _MIN_BOX_LOG
+        lb = np.where(thin & (ub >= ub_all), ub_all - _MIN_BOX_LOG, lb)
+        ub = np.where(thin & (ub < ub_all), lb + _MIN_BOX_LOG, ub)
     # coarse grid (one batched evaluation), then trust-region least squares with bounds
     g_s = np.linspace(np.log(0.01), np.log(100.0), 21)
     g_a = np.linspace(max(np.log(1e-6), lb_all[1]), np.log(10.0), 21)

@@ -196,3 +196,18 @@ def test_golden_batch_concave_monotone_ends():
     x, fx = _golden_batch(f, lo, hi, iters=12)
     end = np.where(sign > 0, hi, lo)
     assert np.all(x == end) and np.all(fx == f(end))
+
+
+def test_fit_channel_box_wholly_beyond_the_range_keeps_a_sliver_on_its_end():
+    """A trust region wholly above sigma_s' = 1e3 /mm (or below sigma_a's floor) collapses onto the range's end and
+    still fits there (was: least_squares "Each lower bound must be strictly less than each upper bound", which
+    failed the reference loop on a 5 mm skimmilk pyramid)."""
+    problem, _ = _two_basin_problem(-5.0)
+    box = (np.array([UB[0] + 1.0, np.log(1e-3)]), np.array([UB[0] + 2.0, np.log(1e-2)]))
+    fit = _fit_channel(problem, SA_FLOOR, profile=False, box=box)
+    assert fit.ok, fit.message
+    assert UB[0] - 2e-3 <= fit.theta[0] <= UB[0] + 1e-12
+    box = (np.array([0.0, LB[1] - 3.0]), np.array([1.0, LB[1] - 2.0]))
+    fit = _fit_channel(problem, SA_FLOOR, profile=False, box=box)
+    assert fit.ok, fit.message
+    assert LB[1] - 1e-12 <= fit.theta[1] <= LB[1] + 2e-3

@@ -1,0 +1,207 @@
+"""The reference loop's start on the ridge of constant albedo: a coarse scan of cheap renders.
+
+The single-image method sees a uniformly lit body mostly through its brightness, which the albedo alpha' =
+sigma_s' / (sigma_s' + sigma_a) sets; the optical size (sigma_s' times the body's size) changes the image only
+through the profile's length. Under a sky or a sun (all faces lit at once) the flat-profile fit is then determined
+along a *ridge of constant albedo* only — its correlation of log sigma_s' and log sigma_a is ~+1 (measured on the
+scene zoo: 0.90-1.00 on every sky- and sun-lit scene, -0.64-0.16 on the point-lit ones) — and where its model
+is also outside its validity it lands anywhere on that ridge: a 5 mm skimmilk pyramid under a sky (l_d 18 mm)
+at the search range's edge, 176x the true sigma_s' (docs/model-error.md sec. 4, "Is the information there?").
+A reference loop started there spends its renders far away (70x the truth after six renders).
+
+:func:`scan_ridge` asks the frame instead: Monte Carlo renders of the scene at sigma_s' = f sigma_s'_0 and
+sigma_a = f sigma_a_0 (albedo held) for a geometric grid of f, all with the same seed (common random numbers: the
+renders' noise is shared and cancels from the comparison), each compared with the observations in the loop's own
+metric and robust objective (Huber on the residuals normalized by the stated noise, the render's and a relative
+model error), sigma_a re-optimised at each f to first order by the render's score-function derivative d Q / d log
+sigma_a from the same paths (:func:`profile_chi2`, step clipped to +-:data:`MAX_DELTA_LOG_SA`). The best point of
+the grid starts the loop. This is a profile likelihood (Murphy and van der Vaart 2000, "On profile likelihood",
+JASA 95(450)) sampled on a coarse grid; ``benchmarks/zoo/information.py`` evaluates the same profile finely
+around the truth as a diagnostic, with :func:`profile_chi2` from here.
+
+:func:`ridge_channels` says which channels need it: the plain fit's sigma_s' at or near its start range's edge. A
+weak fit on the ridge (a correlation of the log parameters of at least :data:`RIDGE_CORRELATION`) alone is reported
+but not scanned: measured on the scene zoo, the low-spp scan moved such starts on its renders' noise under a sun
+and gained nothing under a sky, where those scenes are at the information limit (docs/model-error.md sec. 4).
+"""
+from __future__ import annotations
+
+import time
+from typing import Any, Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .reference_intervals import _huber_sum
+from .single_image import SingleImageResult
+
+__all__ = ["MAX_DELTA_LOG_SA", "RIDGE_CORRELATION", "EDGE_FACTOR", "SCAN_RATIO", "SCAN_STEPS", "SCAN_EXTEND",
+           "profile_chi2",
+           "ridge_channels", "scan_ridge"]
+
+Array = NDArray[np.float64]
+
+#: the first-order sigma_a refit is trusted within this log step (a factor 2); larger steps are clipped to it
+MAX_DELTA_LOG_SA: float = 0.7
+#: a weak plain fit whose corr(log sigma_s', log sigma_a) is at least this lies on the ridge of constant albedo
+RIDGE_CORRELATION: float = 0.85
+#: a plain sigma_a within this factor of the fit's floor (1e-7 /mm) holds no albedo: no ridge scan for it
+SA_FLOOR_PER_MM, SA_FLOOR_FACTOR = 1e-7, 100.0
+#: a plain sigma_s' within this factor of the start range's bounds (or beyond them) is "at the edge"
+EDGE_FACTOR: float = 2.0
+#: the scan's grid: f = SCAN_RATIO ** k for k in range(SCAN_STEPS[0], SCAN_STEPS[1] + 1) (a factor 1/81 to 9 of
+#: the plain fit's sigma_s', clipped to the start range; duplicates after clipping are rendered once)
+SCAN_RATIO: float = 3.0
+SCAN_STEPS: tuple[int, int] = (-4, 2)
+#: at most this many more grid points past an end of the grid while the best point lies on that end
+SCAN_EXTEND: int = 2
+#: the start moves to the best grid point only when its objective beats the plain fit's point (k = 0) by more than
+#: this times sqrt(n) (n observations: the Huber objective of n unit residuals has a standard deviation ~sqrt(n / 2),
+#: so this is ~1.4 of them; measured: a 13 mm skimmilk pyramid under a sun, whose plain R was -2.7 % off after the
+#: loop, moved to a scan point with sigma_a 4x off and ended at +9.7 %)
+SCAN_MIN_GAIN_PER_SQRT_N: float = 1.0
+#: Huber threshold of the robust objective (that of the reference loop, :func:`reference_intervals._huber_sum`)
+_HUBER_K = 2.5
+
+
+def profile_chi2(r: Array, d: Array, w: Array, max_delta: float = MAX_DELTA_LOG_SA) -> tuple[float, float, float]:
+    """(chi^2 at the render, chi^2 with sigma_a re-optimised to first order, that delta log sigma_a) for residuals
+    ``r`` = observed - rendered, the render's derivative ``d`` = d Q / d log sigma_a and weights ``w`` (1-D,
+    finite): the weighted least-squares step delta = sum(w r d) / sum(w d d), clipped to +-``max_delta``."""
+    c0 = float(np.sum(w * r * r))
+    dd = float(np.sum(w * d * d))
+    rd = float(np.sum(w * r * d))
+    delta = float(np.clip(rd / dd, -max_delta, max_delta)) if dd > 0 else 0.0
+    return c0, float(np.sum(w * (r - delta * d) ** 2)), delta
+
+
+def ridge_channels(result: SingleImageResult, ssp_range_per_mm: tuple[float, float]) -> tuple[NDArray[np.bool_],
+                                                                                                list[str]]:
+    """(C,) channels whose plain fit is no start for the reference loop — sigma_s' within :data:`EDGE_FACTOR` of
+    ``ssp_range_per_mm``'s bounds or beyond them — and why ("" where it is); the reasons also name a weak sigma_s'
+    (``extra["status"]``) on the ridge of constant albedo (corr(log sigma_s', log sigma_a) >=
+    :data:`RIDGE_CORRELATION`, sigma_a above its floor: an albedo of 1 is no ridge, :data:`SA_FLOOR_FACTOR`), which
+    alone does not start a scan (measured: see the comment at the return)."""
+    ssp = np.atleast_1d(np.asarray(result.sigma_s_prime_per_mm, dtype=np.float64))
+    n_ch = ssp.size
+    lo, hi = ssp_range_per_mm
+    edge = (ssp <= EDGE_FACTOR * lo) | (ssp >= hi / EDGE_FACTOR)
+    corr = np.full(n_ch, np.nan)
+    if result.correlation_log is not None:
+        corr = np.broadcast_to(np.asarray(result.correlation_log, dtype=np.float64).reshape(-1), (n_ch,))
+    status = (result.extra or {}).get("status") or {}
+    weak = np.array([s != "ok" for s in status.get("sigma_s_prime_per_mm", ["ok"] * n_ch)], dtype=bool)
+    ridge = weak & (np.nan_to_num(corr, nan=-1.0) >= RIDGE_CORRELATION)
+    # sigma_a at its floor: the plain fit's albedo is 1, no ridge to hold (measured: a 5 x 20 x 40 mm ketchup box
+    # under a sun, plain sigma_a 1e-7 /mm, the scan along alpha' = 1 kept sigma_a there and the loop ended at -60 %
+    # instead of -24 %)
+    sa = np.broadcast_to(np.atleast_1d(np.asarray(result.sigma_a_per_mm, dtype=np.float64)), (n_ch,))
+    ridge &= ~(sa <= SA_FLOOR_FACTOR * SA_FLOOR_PER_MM)
+    why = [("; ".join(x for x in (
+        f"sigma_s' {ssp[c]:.3g} /mm at the edge of the start range {lo:g}-{hi:g} /mm" if edge[c] else "",
+        f"sigma_s' weak on the ridge of constant albedo (corr(log sigma_s', log sigma_a) = {corr[c]:.3f})"
+        if ridge[c] else "") if x)) for c in range(n_ch)]
+    # only the edge starts a scan: on the ridge alone, measured on the zoo, the scan's low-spp renders moved the start
+    # on their noise under a sun (a 5 mm marble pyramid at 8 spp: +9.9 % -> +175 %; a 13 mm skimmilk pyramid R:
+    # -2.7 % -> +9.7 %) and gained nothing under a sky (z02, z11 at the information limit; z21 +-10 % either way);
+    # the ridge reason is still reported
+    return edge, why
+
+
+def scan_ridge(render: Callable[[Array], tuple[Array, Array, Array | None, float]], obs: Array,
+               metric: Callable[[Array, Array], Array], theta_start: Array, ssp_range_per_mm: tuple[float, float],
+               channels: NDArray[np.bool_]) -> tuple[Array, dict[str, Any]]:
+    """Scan the ridge of constant albedo through ``theta_start`` (C, 2: log sigma_s', log sigma_a per channel) on
+    the grid f = :data:`SCAN_RATIO` ** k (module docstring), extended by up to :data:`SCAN_EXTEND` more points past
+    an end of the grid where the best point lies on it; return the start (C, 2) — the best grid point with its
+    first-order sigma_a refit where ``channels`` and it beats the plain point (k = 0) by more than
+    :data:`SCAN_MIN_GAIN_PER_SQRT_N` sqrt(n) (``info["moved"]``), ``theta_start`` elsewhere — and a JSON-able
+    record of the scan.
+
+    ``render(theta) -> (radiance (m, C), stderr (m, C), d_radiance (m, C, 2) or None, seconds)`` over the observed
+    rows, all with one seed; ``metric(stderr, radiance) -> (m, C)`` the standard deviation an observation is
+    compared with a render by (the reference loop's); ``obs`` (m, C) NaN where not observed. Channels render
+    independently, so each render carries every channel's own grid point (its start where it has none left)."""
+    n_ch = theta_start.shape[0]
+    lo, hi = np.log(ssp_range_per_mm[0]), np.log(ssp_range_per_mm[1])
+
+    step = np.log(SCAN_RATIO)
+
+    def point(c: int, k: int) -> Array | None:
+        """Channel c's grid point k (albedo held); outside the range only the first point beyond each end, clipped
+        onto it (unless an inner point lies there already), else None."""
+        s0 = theta_start[c, 0]
+        s = s0 + k * step
+        if s < lo - 1e-9 or s > hi + 1e-9:
+            inner = s0 + (k + (1 if s < lo else -1)) * step  # the neighbour towards the range
+            if not lo - 1e-9 <= inner <= hi + 1e-9 or abs(inner - (lo if s < lo else hi)) < 1e-9:
+                return None
+        t = float(np.clip(s, lo, hi))
+        return np.array([t, theta_start[c, 1] + (t - s0)])
+
+    ks = [[k for k in range(SCAN_STEPS[0], SCAN_STEPS[1] + 1) if point(c, k) is not None] if channels[c] else []
+          for c in range(n_ch)]
+    rec: list[dict[int, tuple[float, float]]] = [{} for _ in range(n_ch)]  # k -> (objective, delta log sigma_a)
+    seconds: list[float] = []
+    t0 = time.perf_counter()
+
+    def run(todo: list[int | None]) -> None:
+        th = theta_start.copy()
+        for c, k in enumerate(todo):
+            if k is not None:
+                th[c] = point(c, k)
+        q, se, dq, sec = render(th)
+        seconds.append(sec)
+        m = metric(se, q)
+        r = obs - q
+        for c, k in enumerate(todo):
+            if k is None:
+                continue
+            d_c = dq[:, c, 1] if dq is not None else np.zeros(q.shape[0])
+            ok = np.isfinite(r[:, c]) & np.isfinite(m[:, c]) & (m[:, c] > 0) & np.isfinite(d_c)
+            if ok.sum() < 3:
+                rec[c][k] = (np.inf, 0.0)
+                continue
+            az = np.abs(r[ok, c] / m[ok, c])
+            huber_w = np.where(az > _HUBER_K, _HUBER_K / np.where(az > 0, az, 1.0), 1.0)
+            _, _, dl = profile_chi2(r[ok, c], d_c[ok], huber_w / m[ok, c] ** 2)
+            rec[c][k] = (float(_huber_sum(((r[ok, c] - dl * d_c[ok]) / m[ok, c])[:, None], _HUBER_K)[0]), dl)
+
+    for i in range(max((len(x) for x in ks), default=0)):
+        run([ks[c][i] if i < len(ks[c]) else None for c in range(n_ch)])
+    for _ in range(SCAN_EXTEND):  # the best point on an end of the grid: one more step past it
+        todo: list[int | None] = [None] * n_ch
+        for c in range(n_ch):
+            if not rec[c]:
+                continue
+            best = min(rec[c], key=lambda k: rec[c][k][0])
+            for nxt in (best - 1, best + 1):
+                if (nxt < min(rec[c]) or nxt > max(rec[c])) and point(c, nxt) is not None \
+                        and np.isfinite(rec[c][best][0]):
+                    todo[c] = nxt
+        if all(t is None for t in todo):
+            break
+        run(todo)
+    start = theta_start.copy()
+    best_k: list[int | None] = [None] * n_ch
+    moved = np.zeros(n_ch, bool)
+    n_obs = np.isfinite(obs).sum(axis=0)
+    for c in range(n_ch):
+        if rec[c]:
+            k = min(rec[c], key=lambda k: rec[c][k][0])
+            if not np.isfinite(rec[c][k][0]):
+                continue
+            best_k[c] = k
+            # the start moves only where the frame clearly prefers another point than the plain fit's (k = 0)
+            gain = rec[c][0][0] - rec[c][k][0] if 0 in rec[c] else np.inf
+            if k != 0 and gain > SCAN_MIN_GAIN_PER_SQRT_N * np.sqrt(max(int(n_obs[c]), 1)):
+                start[c] = point(c, k) + np.array([0.0, rec[c][k][1]])
+                moved[c] = True
+    info = {"channels": channels.tolist(), "renders": len(seconds), "render_seconds": seconds,
+            "seconds": time.perf_counter() - t0, "ratio": SCAN_RATIO,
+            "grid": [[{"k": k, "sigma_s_prime_per_mm": float(np.exp(point(c, k)[0])),
+                       "sigma_a_per_mm": float(np.exp(point(c, k)[1])), "objective": rec[c][k][0],
+                       "delta_log_sigma_a": rec[c][k][1]} for k in sorted(rec[c])] for c in range(n_ch)],
+            "best_k": best_k, "moved": moved.tolist(), "start_sigma_s_prime_per_mm": np.exp(start[:, 0]).tolist(),
+            "start_sigma_a_per_mm": np.exp(start[:, 1]).tolist()}
+    return start, info

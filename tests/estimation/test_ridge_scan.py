@@ -1,0 +1,114 @@
+"""estimation.ridge_scan: the reference loop's start from a coarse scan of renders along the ridge of constant albedo.
+
+The "renders" here are a known function of (log sigma_s', log sigma_a) with a ridge: the radiance depends on the
+albedo strongly and on the optical size weakly, as a small body under a sky does; the plain fit is put 100x off
+along the ridge (the 5 mm skimmilk pyramid of the scene zoo: 176x). The scan must bring the start back to the grid
+point nearest the truth, with sigma_a refitted towards it; channels it is not asked to scan keep their start.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from estimation.ridge_scan import (EDGE_FACTOR, MAX_DELTA_LOG_SA, RIDGE_CORRELATION, SCAN_RATIO, profile_chi2,
+                                   ridge_channels, scan_ridge)
+from estimation.single_image import SingleImageResult
+
+TRUTH = np.log(np.array([[0.7, 0.0014], [1.2, 0.0025]]))  # log (sigma_s', sigma_a) per channel
+M = 200
+U = np.linspace(0.0, 1.0, M)  # a per-patch coordinate (distance from an edge, say)
+
+
+def _render(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Radiance (m, C): brightness from the albedo, a weak profile term from the optical size; its derivatives."""
+    s, a = theta[:, 0], theta[:, 1]
+    logit = s - a  # log(sigma_s' / sigma_a): the albedo
+    size = 0.3 * np.tanh(s)  # the optical size's weak signature
+    q = np.exp(0.1 * logit)[None, :] * (1.0 + size[None, :] * (U[:, None] - 0.5))
+    dq_da = -0.1 * q
+    dq = np.stack([np.zeros_like(q), dq_da], axis=2)
+    return q, np.full_like(q, 1e-4), dq, 0.0
+
+
+def _metric(se: np.ndarray, q: np.ndarray) -> np.ndarray:
+    return np.sqrt(se ** 2 + (1e-3 * q) ** 2)
+
+
+def test_the_scan_brings_a_start_far_along_the_ridge_back_to_the_truth() -> None:
+    obs, _, _, _ = _render(TRUTH)
+    start = TRUTH + np.log(100.0)  # 100 x both: the albedo held, the optical size 100 x
+    calls: list[np.ndarray] = []
+
+    def render(th: np.ndarray):
+        calls.append(th.copy())
+        return _render(th)
+
+    out, info = scan_ridge(render, obs, _metric, start, (0.02, 1000.0), np.array([True, False]))
+    # channel 0: the grid point nearest the truth (100 / 3^4 = 1.23 x the truth), its sigma_a refitted
+    assert np.exp(out[0, 0] - TRUTH[0, 0]) == pytest.approx(100.0 / SCAN_RATIO ** 4, rel=1e-9)
+    assert abs(out[0, 1] - (start[0, 1] - 4 * np.log(SCAN_RATIO))) <= MAX_DELTA_LOG_SA + 1e-12
+    # channel 1 was not asked for: its start is unchanged
+    np.testing.assert_array_equal(out[1], start[1])
+    # every grid point rendered once (k = -4..2), one more past the low end where the best point lay (k = -5),
+    # channel 1 at its start each time
+    assert info["renders"] == len(calls) == 8
+    assert [g["k"] for g in info["grid"][0]] == list(range(-5, 3)) and info["grid"][1] == []
+    assert all(np.allclose(th[1], start[1]) for th in calls)
+    # albedo held along the grid
+    assert all(np.isclose(th[0, 0] - th[0, 1], start[0, 0] - start[0, 1]) for th in calls)
+    assert info["best_k"] == [-4, None]
+
+
+def test_the_grid_is_clipped_to_the_start_range_and_rendered_once_per_point() -> None:
+    obs, _, _, _ = _render(TRUTH)
+    start = np.log(np.array([[50.0, 0.1], [50.0, 0.1]]))
+    out, info = scan_ridge(lambda th: _render(th), obs, _metric, start, (0.02, 50.0), np.array([True, True]))
+    ssp = [g["sigma_s_prime_per_mm"] for g in info["grid"][0]]
+    # 50 * 3^k, k = -4..0 (the upper points lie outside the range: 50 itself is the end), then past the low end
+    # while the best point lies on it (the truth is 0.7 and 1.2 /mm: k = -5 is 0.21 /mm)
+    assert max(ssp) == pytest.approx(50.0) and len(set(np.round(ssp, 9))) == len(ssp)
+    assert [g["k"] for g in info["grid"][0]] == [-5, -4, -3, -2, -1, 0]
+    assert [g["k"] for g in info["grid"][1]] == [-4, -3, -2, -1, 0]  # best inside (k = -3: 1.85 /mm)
+    assert info["best_k"] == [-4, -3] and info["renders"] == 6
+
+
+def test_profile_chi2_refits_sigma_a_to_first_order_and_clips_the_step() -> None:
+    d = np.linspace(1.0, 2.0, 10)
+    w = np.ones(10)
+    c0, cp, delta = profile_chi2(0.3 * d, d, w)
+    assert delta == pytest.approx(0.3) and cp == pytest.approx(0.0, abs=1e-20) and c0 > 0
+    _, _, delta = profile_chi2(5.0 * d, d, w)
+    assert delta == MAX_DELTA_LOG_SA
+
+
+def _result(ssp: list[float], corr: list[float], status: list[str], sa: list[float] | None = None
+            ) -> SingleImageResult:
+    return SingleImageResult(True, "ok", "direct", "mc-table", 1.3, sigma_s_prime_per_mm=np.array(ssp),
+                             sigma_a_per_mm=np.full(len(ssp), 0.01) if sa is None else np.array(sa),
+                             correlation_log=np.array(corr),
+                             extra={"status": {"sigma_s_prime_per_mm": status, "sigma_a_per_mm": status}})
+
+
+def test_ridge_channels_picks_fits_at_the_edge_and_names_the_ridge() -> None:
+    rng = (0.02, 50.0)
+    r = _result([1e3, 1.0, 1.0, 1.0, 0.02 * EDGE_FACTOR],
+                [0.0, RIDGE_CORRELATION + 0.01, RIDGE_CORRELATION + 0.01, 0.1, 0.0],
+                ["weak", "weak", "ok", "weak", "ok"])
+    want, why = ridge_channels(r, rng)
+    # only the edge starts a scan; a weak fit on the ridge is named in the reasons
+    assert want.tolist() == [True, False, False, False, True]
+    assert "edge" in why[0] and "ridge" in why[1] and why[2] == "" and why[3] == ""
+    # sigma_a at its floor (albedo 1) is no ridge; the edge still starts a scan
+    r = _result([1.0, 1e3], [1.0, 1.0], ["weak", "weak"], sa=[1e-7, 1e-7])
+    want, why = ridge_channels(r, rng)
+    assert want.tolist() == [False, True] and why[0] == "" and "ridge" not in why[1]
+
+
+def test_the_start_stays_where_the_frame_does_not_clearly_prefer_another_point() -> None:
+    obs, _, _, _ = _render(TRUTH)
+    start = TRUTH + np.log(100.0)
+    # a noise level so large that the whole ridge fits alike: the plain fit's point is kept as it is
+    out, info = scan_ridge(lambda th: _render(th), obs, lambda se, q: np.full_like(q, 10.0), start, (0.02, 1000.0),
+                           np.array([True, True]))
+    np.testing.assert_array_equal(out, start)
+    assert info["moved"] == [False, False] and info["renders"] >= 7
