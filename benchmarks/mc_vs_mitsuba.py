@@ -144,9 +144,12 @@ LIGHT_INTENSITY = 1.0e4       # radiant intensity [radiance unit x mm^2]
 LIGHT_RADIUS_MM = 3.5         # Mitsuba's stand-in: a uniform sphere of this radius
 
 
-def cube_point(size_px: int) -> Scene:
+def cube_point(size_px: int, eta: float = ETA) -> Scene:
+    """Scene 1; with ``eta`` = 1 (``cube_point_eta1``) the boundary is index-matched (Mitsuba: ``null`` BSDF) and
+    both renderers can sample the point light itself (Mitsuba: next-event estimation through the null interface)."""
     ssp, sa = MATERIALS["marble"][0][0], MATERIALS["marble"][1][0]
-    media = [Medium.from_reduced(ssp, sa, eta=ETA)]
+    media = [Medium.from_reduced(ssp, sa, eta=eta)]
+    matched = abs(eta - 1.0) < 1e-12
     cam = OrthographicCamera.looking_at(width_px=size_px, height_px=size_px, pixel_size_mm=22.0 / size_px,
                                         direction=(0.0, 0.0, -1.0), target_mm=(0.0, 0.0, CUBE_HALF_MM),
                                         up=(0.0, 1.0, 0.0))
@@ -154,11 +157,12 @@ def cube_point(size_px: int) -> Scene:
     lights = PointLights(LIGHT_POS_MM[None, :], np.array([LIGHT_INTENSITY]))
 
     def mitsuba(mi: Any, spp: int, *, point: bool = False) -> dict:
+        """``point``: Mitsuba's own point emitter (at eta != 1 volpath renders 0 with it)."""
         T = mi.ScalarTransform4f
         d = _base(mi, sc, spp)
-        d["cube"] = {"type": "cube", "to_world": T().scale(CUBE_HALF_MM), "bsdf": _dielectric(),
-                     "interior": _medium_dict(media)}
-        if point:
+        d["cube"] = {"type": "cube", "to_world": T().scale(CUBE_HALF_MM),
+                     "bsdf": {"type": "null"} if matched else _dielectric(), "interior": _medium_dict(media)}
+        if point or matched:
             d["light"] = {"type": "point", "position": LIGHT_POS_MM.tolist(),
                           "intensity": {"type": "rgb", "value": [LIGHT_INTENSITY] * 3}}
         else:
@@ -168,10 +172,14 @@ def cube_point(size_px: int) -> Scene:
         return d
 
     dist = float(np.linalg.norm(LIGHT_POS_MM - np.array([0, 0, CUBE_HALF_MM])))
-    sc = Scene("cube_point", shape, media, cam, lights, False, mitsuba,
-               f"marble-R cube 20 mm, eta {ETA}; ours: point light I = {LIGHT_INTENSITY:g} at "
-               f"{LIGHT_POS_MM.tolist()} mm; Mitsuba: sphere emitter r = {LIGHT_RADIUS_MM} mm there "
-               f"(r/D = {LIGHT_RADIUS_MM / dist:.3f})")
+    if matched:
+        note = (f"marble-R cube 20 mm, eta 1 (index-matched); point light I = {LIGHT_INTENSITY:g} at "
+                f"{LIGHT_POS_MM.tolist()} mm on both sides")
+    else:
+        note = (f"marble-R cube 20 mm, eta {eta}; ours: point light I = {LIGHT_INTENSITY:g} at "
+                f"{LIGHT_POS_MM.tolist()} mm; Mitsuba: sphere emitter r = {LIGHT_RADIUS_MM} mm there "
+                f"(r/D = {LIGHT_RADIUS_MM / dist:.3f})")
+    sc = Scene("cube_point_eta1" if matched else "cube_point", shape, media, cam, lights, False, mitsuba, note)
     return sc
 
 
@@ -261,6 +269,25 @@ def null_fraction_gt3(passes: int, n: int = 200_000, seed: int = 7) -> float:
     return float(np.mean(np.abs(z) > 3))
 
 
+BLOCK_PX = 4
+
+
+def block_z(passes_o: np.ndarray, passes_m: np.ndarray, cmp_px: np.ndarray, c: int) -> np.ndarray:
+    """z of BLOCK_PX x BLOCK_PX pixel blocks wholly inside the compared pixels (pass images summed per block):
+    sums over 16 pixels are closer to normal than single pixels when an estimator is skewed (rare bright paths)."""
+    h, w = cmp_px.shape
+    hb, wb = h // BLOCK_PX, w // BLOCK_PX
+
+    def blocks(a: np.ndarray) -> np.ndarray:
+        return a[..., :hb * BLOCK_PX, :wb * BLOCK_PX].reshape(a.shape[:-2] + (hb, BLOCK_PX, wb, BLOCK_PX)).sum(
+            axis=(-3, -1))
+
+    full = blocks(cmp_px.astype(float)) == BLOCK_PX ** 2
+    bo, bm = blocks(passes_o[..., c])[:, full], blocks(passes_m[..., c])[:, full]
+    se2 = bo.var(0, ddof=1) / len(bo) + bm.var(0, ddof=1) / len(bm)
+    return (bo.mean(0) - bm.mean(0)) / np.sqrt(se2)
+
+
 def stats(passes_o: np.ndarray, sec_o: float, passes_m: np.ndarray, sec_m: float, cmp_px: np.ndarray) -> dict:
     k_o, k_m = len(passes_o), len(passes_m)
     mo, mm = passes_o.mean(0), passes_m.mean(0)
@@ -269,18 +296,25 @@ def stats(passes_o: np.ndarray, sec_o: float, passes_m: np.ndarray, sec_m: float
     out: dict = {"compared_pixels": int(cmp_px.sum()), "channels": []}
     for c in range(mo.shape[-1]):
         o, m, eo, em = mo[cmp_px, c], mm[cmp_px, c], so[cmp_px, c], sm[cmp_px, c]
-        rel_o = float(np.median(eo / o))
-        rel_m = float(np.median(em / m)) if np.all(m > 0) else float("inf")
+        ref = 0.5 * (o + m)   # one denominator for both (a pixel's own mean would favour a skewed estimator)
+        rel_o = float(np.median(eo / ref))
+        rel_m = float(np.median(em / ref))
         eff_o = 1.0 / (rel_o ** 2 * sec_o)
-        eff_m = 1.0 / (rel_m ** 2 * sec_m) if math.isfinite(rel_m) else 0.0
+        eff_m = 1.0 / (rel_m ** 2 * sec_m) if rel_m > 0 else float("inf")
         z = (o - m) / np.sqrt(eo ** 2 + em ** 2)
+        zb = block_z(passes_o, passes_m, cmp_px, c)
         ratio = float(o.sum() / m.sum()) if m.sum() > 0 else float("inf")
         ratio_se = ratio * math.sqrt(float((eo ** 2).sum()) / o.sum() ** 2 + float((em ** 2).sum()) / m.sum() ** 2) \
             if m.sum() > 0 else float("nan")
         out["channels"].append({
             "rel_stderr_ours": rel_o, "rel_stderr_mitsuba": rel_m, "efficiency_ours": eff_o,
-            "efficiency_mitsuba": eff_m, "efficiency_ratio": eff_o / eff_m if eff_m > 0 else float("inf"),
+            "efficiency_mitsuba": eff_m, "efficiency_ratio": eff_o / eff_m,
             "mean_z": float(z.mean()), "frac_abs_z_gt3": float(np.mean(np.abs(z) > 3)),
+            "block_mean_z": float(zb.mean()) if len(zb) else float("nan"),
+            "block_frac_abs_z_gt3": float(np.mean(np.abs(zb) > 3)) if len(zb) else float("nan"),
+            "blocks": int(len(zb)),
+            "max_over_median_stderr_ours": float(eo.max() / np.median(eo)),
+            "max_over_median_stderr_mitsuba": float(em.max() / np.median(em)),
             "mean_ratio": ratio, "mean_ratio_se": ratio_se})
     return out
 
@@ -302,7 +336,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", nargs="?", const="-", metavar="PATH",
                     help="write JSON to PATH (alone: print JSON instead of the table)")
     ap.add_argument("--variant", default="scalar_rgb", help="Mitsuba variant (scalar_rgb, llvm_ad_rgb)")
-    ap.add_argument("--scenes", default="cube_point,sphere_env")
+    ap.add_argument("--scenes", default="cube_point,cube_point_eta1,sphere_env")
     ap.add_argument("--seed", type=int, default=1)
     args = ap.parse_args(argv)
     try:
@@ -315,8 +349,10 @@ def main(argv: list[str] | None = None) -> int:
     # (size px, spp ours, spp Mitsuba) per scene; Mitsuba's cube needs far more paths (its light is found only by
     # escaping paths that hit the small sphere)
     plan = {"cube_point": (12, 64, 2048) if args.quick else (20, 128, 8192),
-            "sphere_env": (12, 64, 128) if args.quick else (24, 256, 512)}
-    builders = {"cube_point": cube_point, "sphere_env": sphere_env}
+            "cube_point_eta1": (12, 64, 64) if args.quick else (20, 128, 256),
+            "sphere_env": (12, 64, 128) if args.quick else (32, 512, 2048)}
+    builders = {"cube_point": cube_point, "cube_point_eta1": lambda n: cube_point(n, eta=1.0),
+                "sphere_env": sphere_env}
     out: dict = {"mitsuba": mi.__version__, "variant": args.variant, "quick": bool(args.quick),
                  "cpu_count": os.cpu_count(), "null_frac_abs_z_gt3": null_fraction_gt3(passes), "scenes": []}
     t = time.perf_counter()
@@ -325,7 +361,7 @@ def main(argv: list[str] | None = None) -> int:
         render_ours(sc, 4, 2, 0)
         render_mitsuba(mi, sc, 4, 2, 0)
     out["warmup_s"] = time.perf_counter() - t
-    if "cube_point" in args.scenes:
+    if "cube_point" in args.scenes.split(","):
         sc = cube_point(8)
         img, _ = render_mitsuba(mi, sc, 16, 2, 0, point=True)
         out["mitsuba_point_light_image_max"] = float(img.max())
@@ -344,15 +380,17 @@ def main(argv: list[str] | None = None) -> int:
         print(f"cube_point with Mitsuba's point emitter (volpath, dielectric): image max = "
               f"{out['mitsuba_point_light_image_max']:g}")
     print("| scene | ch | spp o/m | s ours | s Mitsuba | rel se o | rel se m | eff o | eff m | ratio o/m "
-          "| mean z | frac |z|>3 | mean o/m | load |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "| mean z | frac |z|>3 | 4x4-block mean z, frac |z|>3 (n) | mean o/m | max/median se o, m | load |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in out["scenes"]:
         for c, ch in enumerate(r["channels"]):
             print(f"| {r['scene']} | {'RGB'[c] if len(r['channels']) > 1 else 'R'} | {r['spp_ours']}/{r['spp_mitsuba']} "
                   f"| {r['seconds_ours']:.1f} | {r['seconds_mitsuba']:.1f} | {ch['rel_stderr_ours']:.4f} "
                   f"| {ch['rel_stderr_mitsuba']:.4f} | {ch['efficiency_ours']:.3g} | {ch['efficiency_mitsuba']:.3g} "
                   f"| {ch['efficiency_ratio']:.3g} | {ch['mean_z']:+.2f} | {ch['frac_abs_z_gt3']:.3f} "
+                  f"| {ch['block_mean_z']:+.2f}, {ch['block_frac_abs_z_gt3']:.3f} ({ch['blocks']}) "
                   f"| {ch['mean_ratio']:.4f} +- {ch['mean_ratio_se']:.4f} "
+                  f"| {ch['max_over_median_stderr_ours']:.1f}, {ch['max_over_median_stderr_mitsuba']:.1f} "
                   f"| {' '.join(f'{v:.1f}' for v in r['load_average'])} |")
     for r in out["scenes"]:
         print(f"{r['scene']}: {r['note']}; {r['compared_pixels']} compared pixels")
