@@ -205,15 +205,22 @@ def env_map_rgb(rows: int = ENV_ROWS) -> np.ndarray:
     return sky[..., None] * col_sky + lobe[..., None] * col_lobe
 
 
-def sphere_env(size_px: int) -> Scene:
+def sphere_env(size_px: int, channel: int | None = None) -> Scene:
+    """Scene 2; ``channel`` (``sphere_env_R``: 0) renders that skin1 channel alone, on Mitsuba's side as a grey
+    medium (its RGB mode samples distances with one channel's sigma_t and weights the others, which gives the
+    channel with the smallest sigma_t -- red -- rare large weights)."""
     ssp, sa = MATERIALS["skin1"]
     media = [Medium.from_reduced(s, a, eta=ETA) for s, a in zip(ssp, sa)]
+    if channel is not None:
+        media = media[channel:channel + 1]
     cam = OrthographicCamera.looking_at(width_px=size_px, height_px=size_px, pixel_size_mm=22.0 / size_px,
                                         direction=(0.0, 1.0, -0.3), target_mm=(0.0, 0.0, 0.0),
                                         up=(0.0, 0.0, 1.0))
     shape = Sphere((0.0, 0.0, 0.0), SPHERE_RADIUS_MM)
     env = env_map_rgb()
-    lights = EnvironmentMap(env)
+    if channel is not None:
+        env = np.repeat(env[..., channel:channel + 1], 3, axis=2)
+    lights = EnvironmentMap(env if channel is None else env[..., :1])
 
     def mitsuba(mi: Any, spp: int) -> dict:
         T = mi.ScalarTransform4f
@@ -228,9 +235,10 @@ def sphere_env(size_px: int) -> Scene:
                     "to_world": T(m.tolist()), "scale": 1.0}
         return d
 
-    sc = Scene("sphere_env", shape, media, cam, lights, True, mitsuba,
-               f"skin1 sphere r {SPHERE_RADIUS_MM} mm (RGB), eta {ETA}, {ENV_ROWS}x{2 * ENV_ROWS} env map, "
-               "specular reflection included")
+    what = "RGB" if channel is None else f"channel {'RGB'[channel]} alone, Mitsuba grey"
+    sc = Scene("sphere_env" if channel is None else f"sphere_env_{'RGB'[channel]}", shape, media, cam, lights, True,
+               mitsuba, f"skin1 sphere r {SPHERE_RADIUS_MM} mm ({what}), eta {ETA}, {ENV_ROWS}x{2 * ENV_ROWS} env "
+               "map, specular reflection included")
     return sc
 
 
@@ -336,7 +344,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", nargs="?", const="-", metavar="PATH",
                     help="write JSON to PATH (alone: print JSON instead of the table)")
     ap.add_argument("--variant", default="scalar_rgb", help="Mitsuba variant (scalar_rgb, llvm_ad_rgb)")
-    ap.add_argument("--scenes", default="cube_point,cube_point_eta1,sphere_env")
+    ap.add_argument("--scenes", default="cube_point,cube_point_eta1,sphere_env,sphere_env_R")
     ap.add_argument("--seed", type=int, default=1)
     args = ap.parse_args(argv)
     try:
@@ -345,14 +353,15 @@ def main(argv: list[str] | None = None) -> int:
         print("mitsuba is not installed: pip install -e '.[bench]'", file=sys.stderr)
         return 2
     mi.set_variant(args.variant)
-    passes = 8
+    passes = 16
     # (size px, spp ours, spp Mitsuba) per scene; Mitsuba's cube needs far more paths (its light is found only by
     # escaping paths that hit the small sphere)
     plan = {"cube_point": (12, 64, 2048) if args.quick else (20, 128, 8192),
             "cube_point_eta1": (12, 64, 64) if args.quick else (20, 128, 256),
-            "sphere_env": (12, 64, 128) if args.quick else (32, 512, 2048)}
+            "sphere_env": (12, 64, 128) if args.quick else (32, 512, 2048),
+            "sphere_env_R": (12, 64, 128) if args.quick else (32, 512, 2048)}
     builders = {"cube_point": cube_point, "cube_point_eta1": lambda n: cube_point(n, eta=1.0),
-                "sphere_env": sphere_env}
+                "sphere_env": sphere_env, "sphere_env_R": lambda n: sphere_env(n, channel=0)}
     out: dict = {"mitsuba": mi.__version__, "variant": args.variant, "quick": bool(args.quick),
                  "cpu_count": os.cpu_count(), "null_frac_abs_z_gt3": null_fraction_gt3(passes), "scenes": []}
     t = time.perf_counter()
