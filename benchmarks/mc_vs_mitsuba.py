@@ -10,7 +10,7 @@ sigma_s = sigma_s'; lengths in mm; radiance in the lights' units):
    script shows that image (0) and renders Mitsuba with a small spherical ``area`` emitter of radius r at the same
    centre and radiance I / (pi r^2): a uniform sphere gives every point that sees all of it the irradiance of a
    point of intensity I (exact), the angular spread of the light (half-angle r/D) changes the image by
-   O((r/D)^2) = 0.5 % here. Ours: the point light, refracted next-event estimation (docs/monte-carlo.md sec. 1).
+   O((r/D)^2) ~ 0.4 % here. Ours: the point light, refracted next-event estimation (docs/monte-carlo.md sec. 1).
 2. ``sphere_env``: a 10 mm-radius skin1 sphere (RGB), eta 1.3, orthographic view from the side, under a smooth
    asymmetric lat-long environment map (sky gradient + a coloured soft lobe); specular reflection included on both
    sides (ours: ``include_specular``, deterministic for a convex shape; Mitsuba: the dielectric's reflection).
