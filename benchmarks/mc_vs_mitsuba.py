@@ -15,7 +15,12 @@ sigma_s = sigma_s'; lengths in mm; radiance in the lights' units):
    asymmetric lat-long environment map (sky gradient + a coloured soft lobe); specular reflection included on both
    sides (ours: ``include_specular``, deterministic for a convex shape; Mitsuba: the dielectric's reflection).
    Both renderers are plain path tracers here (ours: environment NEE is off through a refracting analytic sphere).
-3. a relief slab under a gradient pattern: not done.
+3. ``relief_x``: a skin1-G slab (Mitsuba grey) with the seeded random relief of the gradient tests, a closed
+   non-convex mesh of 3680 triangles, eta 1.3, under the "x" gradient pattern (ours: analytic; Mitsuba: its
+   lat-long map), seen from above; specular reflection included on both sides.
+
+Also ``cube_point_eta1`` (scene 1 index-matched: both sides sample the point light) and ``sphere_env_R`` (scene 2's
+red channel alone; Mitsuba grey, without the RGB mode's chromatic-extinction fireflies).
 
 Conventions matched (and checked by the agreement of the images): pixel = box filter over its area on both
 sides (Mitsuba: ``box`` rfilter, one uniformly placed ray per sample; ours: one uniformly jittered ray per
@@ -42,6 +47,7 @@ Mitchell & Hanrahan 1992 (the refracted connection ours uses).
 from __future__ import annotations
 
 import argparse
+import atexit
 import json
 import math
 import os
@@ -97,6 +103,7 @@ class Scene:
     include_specular: bool
     mitsuba: Callable[[Any, int], dict]        # (mi, spp) -> scene dict
     note: str
+    channel_names: str = "R"
 
 
 def _medium_dict(media: list[Medium]) -> dict:
@@ -238,7 +245,69 @@ def sphere_env(size_px: int, channel: int | None = None) -> Scene:
     what = "RGB" if channel is None else f"channel {'RGB'[channel]} alone, Mitsuba grey"
     sc = Scene("sphere_env" if channel is None else f"sphere_env_{'RGB'[channel]}", shape, media, cam, lights, True,
                mitsuba, f"skin1 sphere r {SPHERE_RADIUS_MM} mm ({what}), eta {ETA}, {ENV_ROWS}x{2 * ENV_ROWS} env "
-               "map, specular reflection included")
+               "map, specular reflection included", "RGB" if channel is None else "RGB"[channel])
+    return sc
+
+
+# ---------------------------------------------------------------- scene 3: skin1 relief slab, gradient pattern
+RELIEF_STEP_MM = 0.5
+RELIEF_EXTENT_MM = 20.0
+RELIEF_THICKNESS_MM = 5.0
+PATTERN_ROWS = 64
+
+
+def pattern_map(pattern: str, rows: int = PATTERN_ROWS) -> np.ndarray:
+    """The gradient pattern's radiance a + b.w (:data:`simulators.mc.lights.PATTERN_COEFFS`) at the pixel centres of
+    a (rows, 2 rows) lat-long map in our convention (Mitsuba's stand-in for the analytic pattern: a linear function
+    of w, so a pixel's centre value differs from its mean by O(pixel^2) ~ 1e-4)."""
+    from simulators.mc.lights import PATTERN_COEFFS
+    a, b = PATTERN_COEFFS[pattern]
+    th = np.pi * (np.arange(rows) + 0.5) / rows
+    ph = 2 * np.pi * (np.arange(2 * rows) + 0.5) / (2 * rows)
+    th, ph = np.meshgrid(th, ph, indexing="ij")
+    w = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], axis=-1)
+    return np.clip(a + w @ np.asarray(b), 0.0, None)
+
+
+def relief_pattern(size_px: int, channel: int = 1, pattern: str = "x") -> Scene:
+    """Scene 3: a skin1 slab (one channel, Mitsuba grey) with the seeded random relief of
+    :class:`simulators.scene.BumpySlabObject` (rms slope 0.1, wavelengths 1.5-6 mm) triangulated every
+    ``RELIEF_STEP_MM`` (:func:`simulators.mc_capture.relief_mesh`, a closed non-convex mesh: ours path-traces it,
+    re-entry included), under the gradient pattern ``pattern`` (ours: the analytic pattern; Mitsuba: its lat-long
+    map), seen from above over the central 12 mm; specular reflection included on both sides."""
+    import tempfile
+
+    from simulators.mc import GradientPattern, Mesh
+    from simulators.mc_capture import relief_mesh
+    from simulators.scene import BumpySlabObject
+
+    ssp, sa = MATERIALS["skin1"]
+    obj = BumpySlabObject((0.0, 0.0, 0.0), tuple(ssp), tuple(sa), ETA, normal=(0.0, 0.0, 1.0),
+                          extent_mm=RELIEF_EXTENT_MM, patch_mm=RELIEF_STEP_MM)
+    tm = relief_mesh(obj, RELIEF_STEP_MM, RELIEF_THICKNESS_MM)
+    media = [Medium.from_reduced(ssp[channel], sa[channel], eta=ETA)]
+    cam = OrthographicCamera.looking_at(width_px=size_px, height_px=size_px, pixel_size_mm=12.0 / size_px,
+                                        direction=(0.0, 0.0, -1.0), target_mm=(0.0, 0.0, 0.0),
+                                        up=(0.0, 1.0, 0.0))
+    ply = Path(tempfile.gettempdir()) / f"sssrig_relief_{os.getpid()}.ply"
+    tm.export(str(ply))
+    atexit.register(ply.unlink, missing_ok=True)
+    env = np.repeat(pattern_map(pattern)[..., None], 3, axis=2)
+
+    def mitsuba(mi: Any, spp: int) -> dict:
+        T = mi.ScalarTransform4f
+        d = _base(mi, sc, spp)
+        d["slab"] = {"type": "ply", "filename": str(ply), "face_normals": True, "bsdf": _dielectric(),
+                     "interior": _medium_dict(media)}
+        m = np.array([[0, 0, -1, 0], [-1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1]], float)
+        d["env"] = {"type": "envmap", "bitmap": mi.Bitmap(np.ascontiguousarray(env[:, ::-1, :], dtype=np.float32)),
+                    "to_world": T(m.tolist()), "scale": 1.0}
+        return d
+
+    sc = Scene(f"relief_{pattern}", Mesh(tm), media, cam, GradientPattern(pattern), True, mitsuba,
+               f"skin1-{'RGB'[channel]} relief slab {RELIEF_EXTENT_MM:g} mm ({len(tm.faces)} triangles, step "
+               f"{RELIEF_STEP_MM} mm, {RELIEF_THICKNESS_MM} mm thick), eta {ETA}, gradient pattern '{pattern}', "
+               "Mitsuba grey, specular included", "RGB"[channel])
     return sc
 
 
@@ -332,7 +401,7 @@ def run_scene(mi: Any, sc: Scene, spp_o: int, spp_m: int, passes: int, seed: int
     mits, sec_m = render_mitsuba(mi, sc, spp_m, passes, seed + 1000)
     mask = render(sc.shape, sc.media, sc.cam, sc.lights, spp=1, seed=0).mask
     cmp_px = binary_erosion(mask, iterations=1)
-    res = {"scene": sc.name, "note": sc.note, "spp_ours": spp_o, "spp_mitsuba": spp_m, "passes": passes,
+    res = {"scene": sc.name, "note": sc.note, "channel_names": sc.channel_names, "spp_ours": spp_o, "spp_mitsuba": spp_m, "passes": passes,
            "seconds_ours": sec_o, "seconds_mitsuba": sec_m, "load_average": list(os.getloadavg())}
     res.update(stats(ours, sec_o, mits, sec_m, cmp_px))
     return res
@@ -344,7 +413,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--json", nargs="?", const="-", metavar="PATH",
                     help="write JSON to PATH (alone: print JSON instead of the table)")
     ap.add_argument("--variant", default="scalar_rgb", help="Mitsuba variant (scalar_rgb, llvm_ad_rgb)")
-    ap.add_argument("--scenes", default="cube_point,cube_point_eta1,sphere_env,sphere_env_R")
+    ap.add_argument("--scenes", default="cube_point,cube_point_eta1,sphere_env,sphere_env_R,relief_x")
     ap.add_argument("--seed", type=int, default=1)
     args = ap.parse_args(argv)
     try:
@@ -359,9 +428,11 @@ def main(argv: list[str] | None = None) -> int:
     plan = {"cube_point": (12, 64, 2048) if args.quick else (20, 128, 8192),
             "cube_point_eta1": (12, 64, 64) if args.quick else (20, 128, 256),
             "sphere_env": (12, 64, 128) if args.quick else (32, 512, 2048),
-            "sphere_env_R": (12, 64, 128) if args.quick else (32, 512, 2048)}
+            "sphere_env_R": (12, 64, 128) if args.quick else (32, 512, 2048),
+            "relief_x": (12, 32, 64) if args.quick else (24, 256, 1024)}
     builders = {"cube_point": cube_point, "cube_point_eta1": lambda n: cube_point(n, eta=1.0),
-                "sphere_env": sphere_env, "sphere_env_R": lambda n: sphere_env(n, channel=0)}
+                "sphere_env": sphere_env, "sphere_env_R": lambda n: sphere_env(n, channel=0),
+                "relief_x": relief_pattern}
     out: dict = {"mitsuba": mi.__version__, "variant": args.variant, "quick": bool(args.quick),
                  "cpu_count": os.cpu_count(), "null_frac_abs_z_gt3": null_fraction_gt3(passes), "scenes": []}
     t = time.perf_counter()
@@ -393,7 +464,7 @@ def main(argv: list[str] | None = None) -> int:
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for r in out["scenes"]:
         for c, ch in enumerate(r["channels"]):
-            print(f"| {r['scene']} | {'RGB'[c] if len(r['channels']) > 1 else 'R'} | {r['spp_ours']}/{r['spp_mitsuba']} "
+            print(f"| {r['scene']} | {r['channel_names'][c]} | {r['spp_ours']}/{r['spp_mitsuba']} "
                   f"| {r['seconds_ours']:.1f} | {r['seconds_mitsuba']:.1f} | {ch['rel_stderr_ours']:.4f} "
                   f"| {ch['rel_stderr_mitsuba']:.4f} | {ch['efficiency_ours']:.3g} | {ch['efficiency_mitsuba']:.3g} "
                   f"| {ch['efficiency_ratio']:.3g} | {ch['mean_z']:+.2f} | {ch['frac_abs_z_gt3']:.3f} "

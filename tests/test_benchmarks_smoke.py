@@ -100,7 +100,7 @@ def test_mc_vs_mitsuba_benchmark_quick_prints_table(tmp_path):
     assert "| scene | ch |" in proc.stdout and "image max = 0" in proc.stdout
     data = json.loads(out.read_text())
     assert [s["scene"] for s in data["scenes"]] == ["cube_point", "cube_point_eta1", "sphere_env",
-                                                   "sphere_env_R"]
+                                                   "sphere_env_R", "relief_x"]
     for s in data["scenes"]:
         assert s["seconds_ours"] > 0 and s["seconds_mitsuba"] > 0 and s["compared_pixels"] > 0
         for ch in s["channels"]:
