@@ -87,3 +87,21 @@ def test_mc_gradients_benchmark_quick_prints_materials_and_models(tmp_path):
     rows = json.loads(out.read_text())["rows"]
     assert len(rows) == 2 * 3 * len(models)
     assert all(r["status"].split()[0] in ("ok", "censored", "failed:") for r in rows)
+
+
+def test_mc_vs_mitsuba_benchmark_quick_prints_table(tmp_path):
+    """Needs the optional ``bench`` extra (Mitsuba 3); skipped without it (CI does not install it)."""
+    import pytest
+    if importlib.util.find_spec("mitsuba") is None:
+        pytest.skip("mitsuba is not installed (the 'bench' extra)")
+    out = tmp_path / "mc_vs_mitsuba.json"
+    proc = _run("mc_vs_mitsuba.py", "--json", str(out))
+    assert proc.returncode == 0, proc.stderr
+    assert "| scene | ch |" in proc.stdout and "image max = 0" in proc.stdout
+    data = json.loads(out.read_text())
+    assert [s["scene"] for s in data["scenes"]] == ["cube_point", "cube_point_eta1", "sphere_env",
+                                                   "sphere_env_R", "relief_x"]
+    for s in data["scenes"]:
+        assert s["seconds_ours"] > 0 and s["seconds_mitsuba"] > 0 and s["compared_pixels"] > 0
+        for ch in s["channels"]:
+            assert ch["efficiency_ours"] > 0 and ch["efficiency_mitsuba"] > 0 and ch["mean_ratio"] > 0
