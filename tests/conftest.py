@@ -6,7 +6,14 @@ and, collected last (tests/simulators, tests/rig), left one worker running alone
 """
 from __future__ import annotations
 
+import os
+
 import pytest
+
+if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) > 1:
+    # two workers on two cores: one OpenBLAS thread each (a second thread per worker spins against the other
+    # worker: QR solves measured 6x slower on the loaded 2-core machine, docs/visibility.md); set before numpy loads
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 HEAVY_FILES: tuple[str, ...] = (
     "tests/simulators/test_mc_frames_single_image.py",
