@@ -7,8 +7,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import pytest
-
 ROOT = Path(__file__).resolve().parents[1]
 
 
@@ -27,13 +25,6 @@ def test_devices_benchmark_quick_prints_every_transport():
         assert transport in text
 
 
-#: two of the smoke runs (~30 s each in the two-worker CI run) run only with SSSRIG_SLOW_BENCH=1: the suite's
-#: 20-minute limit; what they print is asserted by their estimators' own tests (tests/estimation, tests/simulators)
-SLOW_BENCH = pytest.mark.skipif(not os.environ.get("SSSRIG_SLOW_BENCH"),
-                                reason="~30 s benchmark smoke run; SSSRIG_SLOW_BENCH=1 runs it")
-
-
-@SLOW_BENCH
 def test_single_image_benchmark_quick_prints_tables(tmp_path):
     out, png = tmp_path / "single_image.json", tmp_path / "single_image.png"
     proc = _run("single_image.py", "--json", str(out), "--png", str(png))
@@ -73,7 +64,6 @@ def test_monte_carlo_benchmark_quick_prints_figures():
         assert data[key]["seconds"] > 0 and 0 < data[key]["rel_stderr_median"] < 1
 
 
-@SLOW_BENCH
 def test_mc_single_image_benchmark_quick_prints_models_and_verdict():
     proc = _run("mc_single_image.py")
     assert proc.returncode == 0, proc.stderr
