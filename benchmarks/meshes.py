@@ -11,7 +11,7 @@ into the body: non-convex, with a hole), ~100k faces (``--quick``: ~26k). A pinh
    at least half the raw rate), trimesh's own Embree interface (``intersects_first``: faces only;
    ``intersects_location``: faces and hit points) and the numba BVH fallback.
 2. **Patches + visibility** (the geometry stage of ``rig estimate single-image``): the pixel-to-face map of the
-   camera (``rig.estimate.pixel_faces``, one ray per pixel; engine build included) and the camera visibility of
+   camera (``rig.pixel_map.pixel_faces``, one ray per pixel; engine build included) and the camera visibility of
    ~10k patches (``patches_from_mesh`` on the same shape tessellated to ~10k faces, occlusion on; and the
    occlusion of 10k patch centres of the full mesh against all its faces), beside the old paths: the painter's
    order rasterizer (run whole), every pixel ray against every face (old ``MeshObject._hits``) and every patch
@@ -65,7 +65,7 @@ from estimation.shadows import environment_irradiance, point_light_visibility  #
 from estimation.single_image import (EnvironmentMap, PointLights, patch_irradiance,  # noqa: E402
                                      patches_from_mesh, predict_radiance)
 from estimation.single_image.geometry import occluded_from  # noqa: E402
-from rig.estimate import pixel_faces  # noqa: E402
+from rig.pixel_map import pixel_faces  # noqa: E402
 
 RADIUS_MM = 30.0
 

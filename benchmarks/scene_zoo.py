@@ -111,7 +111,7 @@ def file_check(scene: Any, spec: SceneSpec, spp: int) -> list[float]:
     import numpy as np
 
     from estimation.single_image import patches_from_mesh
-    from rig.estimate import pixel_faces, sample_at_points
+    from rig.pixel_map import pixel_faces, sample_at_points
     from rig.scene_reference import scene_reference
 
     cam = scene.camera.model

@@ -2,7 +2,7 @@
 
 It simulates the measurement: the Monte Carlo renderer (:func:`simulators.mc.render`) draws the object in its
 known geometry, seen by the capture's camera under the capture's lights, and the image is sampled at the patch
-centres exactly as the observations were (:func:`rig.estimate.sample_at_points`: a 3 x 3 window mean and its
+centres exactly as the observations were (:func:`rig.pixel_map.sample_at_points`: a 3 x 3 window mean and its
 standard error, NaN where a window pixel is off the object or outside ``valid_px``). Sampling effects (windows
 that straddle an edge, pixel footprints) therefore enter the reference and the observations alike and cancel in
 the correction kappa = reference / fast model.
@@ -29,7 +29,7 @@ from estimation.gradient_correction import SphereObservables
 from estimation.gradients import GradientMaps
 from estimation.single_image import Patches
 
-from .estimate import sample_at_points
+from .pixel_map import sample_at_points
 
 __all__ = ["MonteCarloReference", "GradientsMonteCarloReference"]
 

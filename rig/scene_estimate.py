@@ -106,7 +106,7 @@ def _scene_patches(scene: Scene, budget: Any, cos_min: float, shadows: bool | st
     resolve_patches), the pixel map of the full mesh, and the stage times (added to ``stage``)."""
     from estimation.single_image import decimate_mesh, patches_from_decimated, patches_from_mesh
 
-    from .estimate import pixel_faces
+    from .pixel_map import pixel_faces
 
     mesh, cam, est = scene.mesh_data, scene.camera.model, scene.estimation
     if budget != est.patches:     # the --patches flag: validated like the file's key
@@ -231,7 +231,7 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
     from estimation.single_image import SingleImageResult, estimate_single_image
     from estimation.single_image.decimation import PATCH_MIN_PIXELS, gather_patch_pixels
 
-    from .estimate import sample_at_points
+    from .pixel_map import sample_at_points
 
     t0 = time.perf_counter()
     budget = scene.estimation.patches if patches is None else patches

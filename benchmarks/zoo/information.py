@@ -65,7 +65,7 @@ def frame_data(scene: Any) -> dict[str, Any]:
     per-pixel variance of the noise model, the observations at the patches and their standard errors, all in
     radiance units (value / radiance_scale)."""
     from estimation.single_image import patches_from_mesh
-    from rig.estimate import pixel_faces, sample_at_points
+    from rig.pixel_map import pixel_faces, sample_at_points
     from rig.scene_estimate import _pixel_variance
 
     cam = scene.camera.model
@@ -111,7 +111,7 @@ def _perp(x: np.ndarray, d: np.ndarray, w: np.ndarray) -> np.ndarray:
 
 
 def scene_profile(index: int, *, spp: int, seeds: list[int], factors: list[float]) -> dict[str, Any]:
-    from rig.estimate import sample_at_points
+    from rig.pixel_map import sample_at_points
     from rig.scene_file import load_scene
     from rig.scene_reference import scene_reference
 

@@ -741,7 +741,7 @@ def test_mc_reference_environment_orientation_is_the_estimators(tmp_path):
 
     def reference(name: str, document: dict[str, Any]) -> np.ndarray:
         from estimation.single_image import patches_from_mesh
-        from rig.estimate import pixel_faces
+        from rig.pixel_map import pixel_faces
 
         scene = load_scene(_write_scene(tmp_path, document, name))
         pat = patches_from_mesh(scene.mesh_data, scene.camera.model)
@@ -754,7 +754,7 @@ def test_mc_reference_environment_orientation_is_the_estimators(tmp_path):
     ph = 2 * np.pi * (np.arange(w) + 0.5) / w
     t, p = np.meshgrid(th, ph, indexing="ij")
     native = np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], -1)
-    from rig.estimate import pixel_faces, sample_at_points
+    from rig.pixel_map import pixel_faces, sample_at_points
     scene = load_scene(tmp_path / "oriented.toml")
     img = render(Mesh(scene.render_mesh_data), [Medium.from_reduced(*material, eta=MC_ETA)], cam,
                  EnvironmentMap(sky(native)), spp=128, seed=8)
