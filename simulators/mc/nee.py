@@ -389,6 +389,26 @@ def mesh_connections(prm, x, y, z, lx, ly, lz, eta, sigma_t, g, dcx, dcy, dcz):
 
 
 @njit(cache=True, error_model="numpy")
+def _shadowed_connection_term(prm, nbox, nidx, tris, eps_t, stack, tol_t, nudge, x, y, z, bx, by, bz, J, c1, l_in,
+                              nx, ny, nz, lx, ly, lz, eta, sigma_t, g, dcx, dcy, dcz):
+    """A refracted connection x -> b -> L through a non-convex mesh's face plane (normal n), confirmed by two
+    shadow rays: inside, x -> b must first meet the boundary at b on a face of that plane; outside, b -> L must be
+    free. Its :func:`_connection_term`, or 0 when either ray is blocked (used by :func:`nonconvex_mesh_connections`
+    and :func:`bvh_mesh_connections`)."""
+    ux, uy, uz = (bx - x) / l_in, (by - y) / l_in, (bz - z) / l_in
+    t, hx, hy, hz = nearest_hit(MESH, prm, nbox, nidx, tris, x, y, z, ux, uy, uz, eps_t, stack)
+    if not (abs(t - l_in) <= tol_t and hx * nx + hy * ny + hz * nz >= 1.0 - 1e-8):
+        return 0.0
+    ox, oy, oz = bx + nudge * nx, by + nudge * ny, bz + nudge * nz
+    vx, vy, vz = lx - ox, ly - oy, lz - oz
+    dl = math.sqrt(vx * vx + vy * vy + vz * vz)
+    t2, _a, _b, _c = nearest_hit(MESH, prm, nbox, nidx, tris, ox, oy, oz, vx / dl, vy / dl, vz / dl, eps_t, stack)
+    if t2 < dl:
+        return 0.0
+    return _connection_term(x, y, z, bx, by, bz, J, c1, l_in, nx, ny, nz, eta, sigma_t, g, dcx, dcy, dcz)
+
+
+@njit(cache=True, error_model="numpy")
 def nonconvex_mesh_connections(prm, nbox, nidx, tris, eps_t, stack, x, y, z, lx, ly, lz, eta, sigma_t, g,
                                dcx, dcy, dcz):
     """Sum over the refracted connections x <- b <- L through a NON-CONVEX closed mesh of
@@ -412,17 +432,9 @@ def nonconvex_mesh_connections(prm, nbox, nidx, tris, eps_t, stack, x, y, z, lx,
             ok, bx, by, bz, J, c1, l_in = plane_connection(prm[o + 4], prm[o + 5], prm[o + 6], nx, ny, nz,
                                                            x, y, z, lx, ly, lz, eta)
             if ok and J > 0.0 and l_in > 0.0:
-                ux, uy, uz = (bx - x) / l_in, (by - y) / l_in, (bz - z) / l_in
-                t, hx, hy, hz = nearest_hit(MESH, prm, nbox, nidx, tris, x, y, z, ux, uy, uz, eps_t, stack)
-                if abs(t - l_in) <= tol_t and hx * nx + hy * ny + hz * nz >= 1.0 - 1e-8:
-                    ox, oy, oz = bx + nudge * nx, by + nudge * ny, bz + nudge * nz
-                    vx, vy, vz = lx - ox, ly - oy, lz - oz
-                    dl = math.sqrt(vx * vx + vy * vy + vz * vz)
-                    t2, _a, _b, _c = nearest_hit(MESH, prm, nbox, nidx, tris, ox, oy, oz, vx / dl, vy / dl, vz / dl,
-                                                 eps_t, stack)
-                    if t2 >= dl:
-                        tot += _connection_term(x, y, z, bx, by, bz, J, c1, l_in, nx, ny, nz, eta, sigma_t, g,
-                                                dcx, dcy, dcz)
+                tot += _shadowed_connection_term(prm, nbox, nidx, tris, eps_t, stack, tol_t, nudge, x, y, z, bx, by,
+                                                 bz, J, c1, l_in, nx, ny, nz, lx, ly, lz, eta, sigma_t, g, dcx, dcy,
+                                                 dcz)
         o = o_next
     return tot
 
@@ -540,18 +552,8 @@ def bvh_mesh_connections(prm, nbox, nidx, tris, eps_t, stack, x, y, z, lx, ly, l
             if u < 0.0 or v < 0.0 or u + v > 1.0:
                 continue
             # the shadow rays of nonconvex_mesh_connections: inside x -> b, outside b -> L
-            ux, uy, uz = (bx - x) / l_in, (by - y) / l_in, (bz - z) / l_in
-            t, hx, hy, hz = nearest_hit(MESH, prm, nbox, nidx, tris, x, y, z, ux, uy, uz, eps_t, ray_stack)
-            if not (abs(t - l_in) <= tol_t and hx * nx + hy * ny + hz * nz >= 1.0 - 1e-8):
-                continue
-            ox, oy, oz = bx + nudge * nx, by + nudge * ny, bz + nudge * nz
-            vx, vy, vz = lx - ox, ly - oy, lz - oz
-            dl = math.sqrt(vx * vx + vy * vy + vz * vz)
-            t2, _a, _b, _c = nearest_hit(MESH, prm, nbox, nidx, tris, ox, oy, oz, vx / dl, vy / dl, vz / dl,
-                                         eps_t, ray_stack)
-            if t2 >= dl:
-                tot += _connection_term(x, y, z, bx, by, bz, J, c1, l_in, nx, ny, nz, eta, sigma_t, g,
-                                        dcx, dcy, dcz)
+            tot += _shadowed_connection_term(prm, nbox, nidx, tris, eps_t, ray_stack, tol_t, nudge, x, y, z, bx, by,
+                                             bz, J, c1, l_in, nx, ny, nz, lx, ly, lz, eta, sigma_t, g, dcx, dcy, dcz)
     return tot
 
 
