@@ -693,10 +693,10 @@ def expose_raw(radiance: FloatArray, exposure_s: float, sensor: Any, rng: np.ran
     """Radiance (H, W, 3) -> RGGB mosaic (2H, 2W) uint16 like :func:`simulators.camera.expose`, plus a
     pedestal ``black_offset_dn`` above the declared black level and a quadratic response
     s' = s (1 - nonlinearity s / span) (span = white - black) applied to the photo signal before noise."""
-    from .camera import _signal_mosaic
+    from .sensor import signal_mosaic
 
     span = float(sensor.white_level_dn - sensor.black_level_dn)
-    signal_dn = np.maximum(_signal_mosaic(radiance) * sensor.gain_dn_per_unit * exposure_s, 0.0)
+    signal_dn = np.maximum(signal_mosaic(radiance) * sensor.gain_dn_per_unit * exposure_s, 0.0)
     if nonlinearity:
         signal_dn = signal_dn * (1.0 - nonlinearity * np.minimum(signal_dn, span) / span)
     electrons = rng.poisson(signal_dn * sensor.electrons_per_dn)
