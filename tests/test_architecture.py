@@ -5,7 +5,7 @@
   drivers, estimation and simulators.
 - No import cycle between any two modules of the four packages (imports inside functions count; imports under
   ``if TYPE_CHECKING:`` do not: they never run).
-- No module over 800 lines, except the ones listed below, which may only shrink (each is waiting for its split).
+- No module over 800 lines (the packages, tests, benchmarks, hil), except the ones listed below, which may only shrink (each is waiting for its split).
 """
 from __future__ import annotations
 
@@ -19,8 +19,7 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("drivers", "estimation", "simulators", "rig")
 MAX_LINES = 800
 #: modules over MAX_LINES still to be split (issue 20), with their length when listed: they may only shrink
-LONG_MODULES = {"rig/capture_folder.py": 1152, "estimation/diffusion.py": 1361, "estimation/gradients.py": 1205,
-                "simulators/targets.py": 838}
+LONG_MODULES = {"rig/capture_folder.py": 1144, "estimation/diffusion.py": 1361, "estimation/gradients.py": 1205}
 
 
 def test_the_import_contracts_hold() -> None:
@@ -93,7 +92,7 @@ def test_no_import_cycle_between_modules() -> None:
 
 def test_no_module_over_800_lines() -> None:
     too_long = {}
-    for pkg in PACKAGES:
+    for pkg in PACKAGES + ("tests", "benchmarks", "hil"):
         for path in sorted((ROOT / pkg).rglob("*.py")):
             rel = path.relative_to(ROOT).as_posix()
             n = len(path.read_text().splitlines())
