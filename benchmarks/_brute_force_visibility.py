@@ -6,7 +6,7 @@ benchmarks/meshes.py. Not used by the package.
 - :func:`hits_brute_force`: every ray against every face, nearest hit, formerly
   ``simulators.scene.MeshObject._hits`` (here a function of the triangles);
 - :func:`pixel_faces_painters_order`: front faces rasterized back to front by centroid depth
-  (``cv2.fillConvexPoly``), formerly ``rig.estimate.pixel_faces`` — not exact on non-convex meshes.
+  (``cv2.fillConvexPoly``), formerly ``rig.estimate.sessions.pixel_faces`` — not exact on non-convex meshes.
 """
 from __future__ import annotations
 

@@ -31,8 +31,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from drivers.led_sphere import open_led_sphere_serial  # noqa: E402
 from drivers.led_sphere_modbus import open_led_sphere_modbus  # noqa: E402
 from drivers.trigger.esper import open_esper_trigger  # noqa: E402
-from rig.geometry import led_layout  # noqa: E402
-from rig.patterns import GRADIENT_PATTERNS, pattern_rgb16  # noqa: E402
+from rig.acquire.geometry import led_layout  # noqa: E402
+from rig.acquire.patterns import GRADIENT_PATTERNS, pattern_rgb16  # noqa: E402
 from simulators.led_sphere import LedSphereModel  # noqa: E402
 from simulators.led_sphere_modbus import LedSphereModbusSim  # noqa: E402
 from simulators.serve import serve  # noqa: E402

@@ -62,7 +62,7 @@ sys.path.insert(0, str(ROOT))
 from estimation.diffusion import estimate_sphere, sphere_albedo, sphere_shortening  # noqa: E402
 from estimation.fresnel import fresnel_transmittance  # noqa: E402
 from estimation.gradients import LedRig, build_response_lut, compute_maps  # noqa: E402
-from rig.geometry import led_layout  # noqa: E402
+from rig.acquire.geometry import led_layout  # noqa: E402
 
 ETA = 1.3
 RADIUS_MM = 10.0
@@ -252,11 +252,11 @@ def run_relief(folder: Path, parallel: bool, tile_rows: int, workers: int | None
     """The relief branch of ``rig estimate gradients`` (a capture folder without a sphere: issue 16) on the same
     frames, traced: compute_maps (memory-mapped maps), the per-window relief fit of the diffuse normals against
     the known normals with its full-resolution window maps written as EXR
-    (:func:`rig.folder_diffusion.relief_estimate`, 64-px windows as the CLI's default), and the apparent albedo
-    map (:func:`rig.folder_diffusion.albedo_apparent`) written as EXR. Returns seconds and the tracemalloc peak."""
+    (:func:`rig.estimate.folder_diffusion.relief_estimate`, 64-px windows as the CLI's default), and the apparent albedo
+    map (:func:`rig.estimate.folder_diffusion.albedo_apparent`) written as EXR. Returns seconds and the tracemalloc peak."""
     from estimation.camera import OrthographicCamera
-    from rig.folder_diffusion import RELIEF_WINDOW_PX, albedo_apparent, relief_estimate
-    from rig.imageio import write_exr
+    from rig.estimate.folder_diffusion import RELIEF_WINDOW_PX, albedo_apparent, relief_estimate
+    from rig.files.imageio import write_exr
 
     frames, normals = load_inputs(folder, parallel)
     H, W = normals.shape[:2]

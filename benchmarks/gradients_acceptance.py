@@ -1,8 +1,8 @@
 """Issue 16's acceptance, printed: diffusion estimates from Monte Carlo gradient captures through the user path.
 
 Every case (:mod:`benchmarks.gradients_cases`: frames of the project's Monte Carlo renderer with camera noise,
-written as a capture folder and cached by content hash) is estimated by :func:`rig.capture_folder.estimate_capture`
-on :func:`rig.capture_folder.load_capture` of that folder -- the library entry ``rig estimate gradients FOLDER``
+written as a capture folder and cached by content hash) is estimated by :func:`rig.estimate.capture_folder.estimate_capture`
+on :func:`rig.estimate.capture_folder.load_capture` of that folder -- the library entry ``rig estimate gradients FOLDER``
 calls -- with the CLI's defaults (``--reference`` where the case says so: ``reference_spp`` paths, at most
 ``reference_iterations`` renders, the CLI's reference seed 1):
 
@@ -72,7 +72,7 @@ RELIEF_SPP = {"marble": 16, "apple": 16, "skimmilk": 16, "skin1": 64, "ketchup":
 
 
 def full_cases() -> list[Case]:
-    from rig.folder_reference import REFERENCE_ITERATIONS     # the CLI's default render budget
+    from rig.estimate.reference.folder_reference import REFERENCE_ITERATIONS     # the CLI's default render budget
 
     cases = [Case("sphere", m, size_px=32, spp=64, radius_mm=5.0, reference=True,
                   reference_iterations=REFERENCE_ITERATIONS) for m in SPHERE_MATERIALS]
@@ -104,7 +104,7 @@ def _num(x: Any) -> float:
 
 def estimate_case(case: Case, folder: Path, out_dir: Path) -> tuple[dict[str, Any], float]:
     """``rig estimate gradients FOLDER [--reference ...] --json``'s summary, through the CLI's library entry."""
-    from rig.capture_folder import estimate_capture, load_capture
+    from rig.estimate.capture_folder import estimate_capture, load_capture
 
     out_dir.mkdir(parents=True, exist_ok=True)
 

@@ -7,7 +7,7 @@ last, so its presence marks a complete folder). ``<hash>``: SHA-256 of the case,
 (:func:`simulators.mc._cache.sources_hash`), ``simulators/scene.py``, ``simulators/mc_capture.py`` and this file:
 a second run renders nothing; a change of the renderer or of a case renders again.
 
-Common to every case: 362 LEDs at 1 m (``rig.geometry.led_layout(6, 1000, -60)``, intensity 1000 per channel) seen
+Common to every case: 362 LEDs at 1 m (``rig.acquire.geometry.led_layout(6, 1000, -60)``, intensity 1000 per channel) seen
 by the Monte Carlo renderer as a distant map (``simulators.mc_capture``), full + x + y + z gradients, eta 1.3,
 reduced sigma_s', sigma_a of science.md sec. 2 (``rig.config.MATERIALS``), isotropic phase function; camera noise
 of a 14-bit sensor (``simulators.camera.SensorModel``: Poisson shot noise at 1.5 electrons/DN, read noise 2 DN,
@@ -124,7 +124,7 @@ def default_root() -> Path:
 
 def _leds() -> tuple[np.ndarray, np.ndarray, Any]:
     from estimation.gradients import LedRig
-    from rig.geometry import led_layout
+    from rig.acquire.geometry import led_layout
 
     pos, _ = led_layout(6, 1000.0, -60.0)
     inten = np.full((len(pos), 3), 1000.0)
@@ -140,7 +140,7 @@ def _sensor() -> Any:
 def _render(case: Case) -> tuple[Any, list[str], dict[str, Any]]:
     """The capture (simulators.scene.GradientCapture), the folder's [camera]/[object] lines and render facts."""
     from estimation.camera import OrthographicCamera, PinholeCamera
-    from rig.folder_reference import renderable_camera
+    from rig.estimate.reference.folder_reference import renderable_camera
     from simulators.mc_capture import MCSettings
     from simulators.scene import BumpySlabObject, SphereObject, render_gradient_capture
 
@@ -187,7 +187,7 @@ def _render(case: Case) -> tuple[Any, list[str], dict[str, Any]]:
 def build_case(case: Case, root: Path | None = None) -> tuple[Path, dict[str, Any]]:
     """The case's capture folder (rendered now, or found in the cache) and its meta data."""
     from drivers.atomic import atomic_write
-    from rig.imageio import write_exr
+    from rig.files.imageio import write_exr
 
     folder = (root or default_root()) / content_hash(case)
     meta_path = folder / "meta.json"

@@ -17,7 +17,7 @@ Models (per material and RGB channel):
   half-space R_d, l' from the first-order shortening; the exact sphere integrals exist for the Jensen dipole
   only, so these two use the small-blur approximation);
 - ``dipole-jensen+reference``: :func:`estimation.gradient_correction.estimate_sphere_with_reference` with a
-  :class:`rig.mc_reference.GradientsMonteCarloReference` of the same capture (same camera, LEDs, patterns, spp,
+  :class:`rig.estimate.reference.mc_reference.GradientsMonteCarloReference` of the same capture (same camera, LEDs, patterns, spp,
   maps and region; reference seed = ``--seed`` + 100 for every render: common random numbers, independent of the
   frame's realisation), at most ``--reference-iterations`` renders, ``rel_tol`` 0.02.
 
@@ -62,8 +62,8 @@ from estimation.diffusion import estimate_sphere  # noqa: E402
 from estimation.gradient_correction import estimate_sphere_with_reference  # noqa: E402
 from estimation.gradients import LedRig, albedo_scale_from_radiometry, build_response_lut, compute_maps  # noqa: E402
 from rig.config import MATERIALS as RIG_MATERIALS  # noqa: E402
-from rig.geometry import led_layout  # noqa: E402
-from rig.mc_reference import GradientsMonteCarloReference  # noqa: E402
+from rig.acquire.geometry import led_layout  # noqa: E402
+from rig.estimate.reference.mc_reference import GradientsMonteCarloReference  # noqa: E402
 from simulators.camera import SensorModel  # noqa: E402
 from simulators.mc_capture import MCSettings  # noqa: E402
 from simulators.scene import SphereObject, render_gradient_capture  # noqa: E402

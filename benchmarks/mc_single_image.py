@@ -7,7 +7,7 @@ faces. The frame is rendered by ``simulators.mc.render`` (refracted next-event e
 box boundary; per-pixel mean and standard error); the renderer's seconds and paths/s are printed.
 
 Estimation: the same cube as a trimesh box subdivided to ``--patch-mm`` edges (``patches_from_mesh``), the image
-sampled at the projected patch centres with 3x3 windows (``rig.pixel_map.pixel_faces`` / ``sample_at_points``:
+sampled at the projected patch centres with 3x3 windows (``rig.estimate.pixel_map.pixel_faces`` / ``sample_at_points``:
 NaN where any window pixel is off the object), the MC standard error of that window mean as ``noise_sigma``,
 then ``estimate_single_image(method="direct")`` with each model. Rows: model, sigma_s', sigma_a, relative errors,
 sigma_a 95 % interval, identifiable flag, seconds. A second block repeats the fits with observations within
@@ -18,7 +18,7 @@ Units check (printed): the MC image over ``predict_radiance(model=...)`` at the 
 patches, by distance to the nearest edge. Both are radiance per unit radiant intensity of the light
 (intensity / mm^2 / sr): no constant factor between them (a missing pi would show as 3.14 or 0.32).
 
-Best model: ``mc-table+reference`` (:mod:`estimation.model_correction` with :class:`rig.mc_reference.MonteCarloReference`):
+Best model: ``mc-table+reference`` (:mod:`estimation.model_correction` with :class:`rig.estimate.reference.mc_reference.MonteCarloReference`):
 the mc-table fit corrected by Monte Carlo renders of the known box at the current estimate, through the same
 camera and the same 3x3 window sampling (``--reference-spp``, ``--reference-iterations``). It shares the
 renderer and the analytic box with the frame (the method assumes known geometry) but not the random numbers;
@@ -51,8 +51,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from estimation.camera import PinholeCamera  # noqa: E402
 from estimation.model_correction import estimate_with_reference  # noqa: E402
 from estimation.single_image import PointLights, estimate_single_image, patches_from_mesh, predict_radiance  # noqa: E402
-from rig.pixel_map import pixel_faces, sample_at_points  # noqa: E402
-from rig.mc_reference import MonteCarloReference  # noqa: E402
+from rig.estimate.pixel_map import pixel_faces, sample_at_points  # noqa: E402
+from rig.estimate.reference.mc_reference import MonteCarloReference  # noqa: E402
 
 TRUTH = (2.19, 0.002)          # marble-R (seed Table 1)
 ETA = 1.3

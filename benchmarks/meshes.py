@@ -11,7 +11,7 @@ into the body: non-convex, with a hole), ~100k faces (``--quick``: ~26k). A pinh
    at least half the raw rate), trimesh's own Embree interface (``intersects_first``: faces only;
    ``intersects_location``: faces and hit points) and the numba BVH fallback.
 2. **Patches + visibility** (the geometry stage of ``rig estimate single-image``): the pixel-to-face map of the
-   camera (``rig.pixel_map.pixel_faces``, one ray per pixel; engine build included) and the camera visibility of
+   camera (``rig.estimate.pixel_map.pixel_faces``, one ray per pixel; engine build included) and the camera visibility of
    ~10k patches (``patches_from_mesh`` on the same shape tessellated to ~10k faces, occlusion on; and the
    occlusion of 10k patch centres of the full mesh against all its faces), beside the old paths: the painter's
    order rasterizer (run whole), every pixel ray against every face (old ``MeshObject._hits``) and every patch
@@ -20,7 +20,7 @@ into the body: non-convex, with a hole), ~100k faces (``--quick``: ~26k). A pinh
 3. **Cast shadows** (issue 17 part 2): shadow rays of a point light from 10k face centres of the full mesh
    against all its faces (``estimation.shadows.point_light_visibility``), and the environment-map shadows of a
    sky with a sun (64 x 128 map, default 16 cell rows) on the ~10k patches (``environment_irradiance``).
-4. **End to end**: ``rig estimate single-image`` (``rig.scene_file.load_scene`` + ``rig.scene_estimate.estimate_scene``,
+4. **End to end**: ``rig estimate single-image`` (``rig.files.scene_file.load_scene`` + ``rig.estimate.scenes.estimate_scene``,
    model ``mc-table``, method direct, shadows auto = on) on a scene file of the full ~100k-face mesh itself with
    ``[estimation] patches = 10000`` (``--quick``: the 26k-face mesh at 2,500), lit by a point light; its image is
    the estimator's forward model with shadows on one patch per face of the full mesh (not timed), painted per
@@ -65,7 +65,7 @@ from estimation.shadows import environment_irradiance, point_light_visibility  #
 from estimation.single_image import (EnvironmentMap, PointLights, patch_irradiance,  # noqa: E402
                                      patches_from_mesh, predict_radiance)
 from estimation.single_image.geometry import occluded_from  # noqa: E402
-from rig.pixel_map import pixel_faces  # noqa: E402
+from rig.estimate.pixel_map import pixel_faces  # noqa: E402
 
 RADIUS_MM = 30.0
 
@@ -239,9 +239,9 @@ def end_to_end(mesh: trimesh.Trimesh, cam: PinholeCamera, folder: Path, n_patche
     """Time rig estimate single-image on a scene file of the full ``mesh`` with ``patches = n_patches`` (see the
     module docstring, item 4): ``runs`` independent runs (scene loaded, mesh decimated, engine built afresh)."""
     from estimation.single_image import estimate as single_image_estimate
-    from rig.imageio import write_exr
-    from rig.scene_estimate import estimate_scene
-    from rig.scene_file import load_scene
+    from rig.files.imageio import write_exr
+    from rig.estimate.scenes import estimate_scene
+    from rig.files.scene_file import load_scene
 
     ssp, sa, eta, inten = 1.2, 0.01, 1.3, 1e6
     t_img = time.perf_counter()

@@ -64,7 +64,7 @@ def halfspace(material: str, photons: int, seed: int = 1) -> None:
 def box(material: str, front: bool, scale: float, px: int, spp: int, seed: int = 7) -> None:
     from estimation.camera import OrthographicCamera
     from estimation.fresnel import fresnel_transmittance
-    from rig.folder_reference import renderable_camera
+    from rig.estimate.reference.folder_reference import renderable_camera
     from simulators import mc
     from simulators.mc_capture import led_environment, mc_media
     from simulators.scene import BumpySlabObject

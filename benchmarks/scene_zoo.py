@@ -22,7 +22,7 @@ failure class of issue 15 at least once; each scene's name lists its classes:
 
 Every scene is rendered by ``simulators.mc.render`` and written as a documented scene-file folder (docs/scene-file.md)
 under ``benchmarks/out/zoo/<content hash>/``, cached by the hash of the scene description, the frame spp and the
-renderer's sources (a second run renders nothing). Then the user path runs: ``rig.scene_file.load_scene`` +
+renderer's sources (a second run renders nothing). Then the user path runs: ``rig.files.scene_file.load_scene`` +
 ``estimate_scene`` with every model (dipole-jensen, dipole-better, mc-table, mc-table+reference), every Python
 warning and every byte written to stderr (file descriptor 2) during an estimate captured and counted.
 
@@ -67,7 +67,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from drivers.atomic import atomic_write_bytes  # noqa: E402
-from rig.provenance import json_default  # noqa: E402
+from rig.files.provenance import json_default  # noqa: E402
 from zoo.frames import build_scene, default_root  # noqa: E402
 from zoo.rules import REFERENCE_MODEL, acceptance, evaluate, worst_sigma_s  # noqa: E402
 from zoo.nonconvex import draw_nonconvex  # noqa: E402
@@ -103,7 +103,7 @@ def captured() -> Iterator[dict[str, Any]]:
 
 def file_check(scene: Any, spec: SceneSpec, spp: int) -> list[float]:
     """The scene file against the frame: the Monte Carlo reference the estimator would render from the *file*
-    (rig.scene_reference: mesh, camera, lights, map and orientation keys as loaded) at the true parameters, and
+    (rig.estimate.reference.scene_reference: mesh, camera, lights, map and orientation keys as loaded) at the true parameters, and
     the image read back (value / radiance_scale), sampled at the same patches: the sum of the image over the sum of
     the reference on the observed patches, per channel (sums, not a median of ratios: Monte Carlo pixels are
     heavy-tailed). ~1 where the file describes the frame's lighting and geometry, up to the noise of both (under
@@ -111,8 +111,8 @@ def file_check(scene: Any, spec: SceneSpec, spp: int) -> list[float]:
     import numpy as np
 
     from estimation.single_image import patches_from_mesh
-    from rig.pixel_map import pixel_faces, sample_at_points
-    from rig.scene_reference import scene_reference
+    from rig.estimate.pixel_map import pixel_faces, sample_at_points
+    from rig.estimate.reference.scene_reference import scene_reference
 
     cam = scene.camera.model
     pat = patches_from_mesh(scene.mesh_data, cam)
@@ -131,7 +131,7 @@ def file_check(scene: Any, spec: SceneSpec, spp: int) -> list[float]:
 
 def run_model(scene: Any, model: str, spec: SceneSpec, ref_spp: int, ref_iterations: int,
               shadows: str | None = None) -> dict[str, Any]:
-    from rig.scene_estimate import estimate_scene
+    from rig.estimate.scenes import estimate_scene
 
     t0 = time.perf_counter()
     with captured() as rec:
@@ -301,7 +301,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"[{i + 1}/{len(specs)}] {spec.name}: frame", file=sys.stderr, flush=True)
         folder, meta = build_scene(spec, root)
         from estimation.shadows import is_convex_mesh
-        from rig.scene_file import load_scene
+        from rig.files.scene_file import load_scene
 
         scene = load_scene(folder / "scene.toml")
         check = file_check(scene, spec, ref_spp)

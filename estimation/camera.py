@@ -98,7 +98,7 @@ class OrthographicCamera:
     """Orthographic camera: rig point X projects to pixel (u, v) = (Xc_x, Xc_y)/pixel_size_mm + (cx, cy) with
     Xc = R (X - target_mm) and the rows of R the camera's right, down and forward axes in the rig frame (the
     OpenCV convention of :class:`PinholeCamera`); ``target_mm`` images at (cx, cy). Used by capture folders
-    (rig.capture_folder) and the Monte Carlo renderer (simulators.mc)."""
+    (rig.estimate.capture_folder) and the Monte Carlo renderer (simulators.mc)."""
 
     width_px: int
     height_px: int

@@ -55,7 +55,7 @@ realisation's error — not a wrong geometry, not the error of a poorly learnt K
 information, as in skin1's blue channel, the interval is wide and itself uncertain).
 
 The reference is any callable ``reference(sigma_s_prime_per_mm (C,), sigma_a_per_mm (C,), eta, seed) ->
-SphereObservables``; ``rig.mc_reference.GradientsMonteCarloReference`` builds one from the Monte Carlo capture
+SphereObservables``; ``rig.estimate.reference.mc_reference.GradientsMonteCarloReference`` builds one from the Monte Carlo capture
 simulator (this package imports nothing else of ours).
 """
 from __future__ import annotations

@@ -79,7 +79,7 @@ Numerical warnings are not emitted.
 The reference renderer is any callable ``reference(sigma_s_prime_per_mm (C,), sigma_a_per_mm (C,), eta, seed) ->
 (radiance, stderr)`` or ``(radiance, stderr, d_radiance, d_stderr)``, radiance and stderr (m or K, C) in the units
 of the observations (NaN where not observed), d_radiance (m or K, C, 2) the derivatives with respect to (log
-sigma_s', log sigma_a); ``rig.mc_reference`` builds one from ``simulators.mc`` (this package imports nothing else of
+sigma_s', log sigma_a); ``rig.estimate.reference.mc_reference`` builds one from ``simulators.mc`` (this package imports nothing else of
 ours). Every render uses the same ``seed`` (common random numbers: the iteration sees one fixed realisation of the
 reference, whose noise enters the refit's standard errors).
 """

@@ -15,7 +15,7 @@ between faces, fireflies and hot pixels); a, b >= 0 by weighted least squares on
 variance^2, the inverse variance of a variance estimate). Curvature of the signal leaks into r (it estimates the
 noise high where the image bends sharply within a pixel or two): the estimate is conservative there.
 
-Pure numpy / scipy; ``rig.scene_file`` applies it to scene images without a ``[noise]`` section.
+Pure numpy / scipy; ``rig.files.scene_file`` applies it to scene images without a ``[noise]`` section.
 """
 from __future__ import annotations
 

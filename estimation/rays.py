@@ -2,7 +2,7 @@
 
 One engine serves the three places that once tested every ray against every face: patch visibility of the
 single-image method (:func:`estimation.single_image.patches_from_mesh`), the simulated camera's mesh objects
-(``simulators.scene.MeshObject``) and the pixel-to-face maps of scene files (``rig.pixel_map.pixel_faces``).
+(``simulators.scene.MeshObject``) and the pixel-to-face maps of scene files (``rig.estimate.pixel_map.pixel_faces``).
 
 Backends (``RayEngine(..., backend=...)``):
 

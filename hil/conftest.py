@@ -26,7 +26,7 @@ def rig_config(pytestconfig: pytest.Config):
 @pytest.fixture(scope="session")
 def rig(rig_config):
     """(config, geometry, devices) for the whole session; the sphere is darkened at the end."""
-    from rig.factory import open_devices, rig_geometry, start_simulators
+    from rig.acquire.factory import open_devices, rig_geometry, start_simulators
 
     cfg, simulated = rig_config
     geo = rig_geometry(cfg)

@@ -6,7 +6,7 @@ import pytest
 
 from drivers.contracts import Camera, LightSource, Polarization, PositionFeed, Trigger
 from drivers.errors import LimitError
-from rig.patterns import pattern_rgb16
+from rig.acquire.patterns import pattern_rgb16
 
 
 def test_every_device_satisfies_its_contract_and_identifies(rig):

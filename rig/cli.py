@@ -22,7 +22,7 @@ from drivers.errors import RigError  # noqa: E402
 def load_config(path: Path | None):
     """rig.config.load_config, imported on first use: the schema (pydantic) takes ~0.4 s to build, and every
     long command must say something on stderr within 2 s of its start (issue 18), also on a loaded machine."""
-    from .config import load_config as _load
+    from rig.config import load_config as _load
     return _load(path)
 
 
@@ -43,10 +43,10 @@ def _add_request(p: argparse.ArgumentParser) -> None:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from .demo import format_table, run_demo
+    from rig.demo import format_table, run_demo
     result = run_demo(config_path=args.config, sessions_dir=args.sessions, name=args.name, log=_say(args))
     if args.json:
-        from .provenance import json_default
+        from rig.files.provenance import json_default
         print(json.dumps(result, indent=2, default=json_default))
     else:
         print(format_table(result))
@@ -55,7 +55,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 def _sim_alone(args: argparse.Namespace) -> int:
     """One device's simulator on a URL given by the user (its own module's command line)."""
-    from .geometry import rig_geometry
+    from rig.acquire.geometry import rig_geometry
     cfg = load_config(args.config)
     leds = str(len(rig_geometry(cfg).led_positions_mm))
     url = args.url or "pty"
@@ -78,7 +78,7 @@ def _sim_alone(args: argparse.Namespace) -> int:
 
 def _cmd_sim(args: argparse.Namespace) -> int:
     if args.fault and "list" in args.fault:
-        from .sim_faults import describe
+        from rig.acquire.sim_faults import describe
         print(describe())
         return 0
     if args.device:
@@ -87,8 +87,8 @@ def _cmd_sim(args: argparse.Namespace) -> int:
         return _sim_alone(args)
     import tempfile
 
-    from .factory import rig_geometry, start_simulators
-    from .sim_faults import apply_faults, parse_faults
+    from rig.acquire.factory import rig_geometry, start_simulators
+    from rig.acquire.sim_faults import apply_faults, parse_faults
     cfg = load_config(args.config)
     faults = parse_faults(args.fault or [])
     work = tempfile.TemporaryDirectory(prefix="sssrig-sim-")
@@ -118,14 +118,14 @@ def _cmd_sim(args: argparse.Namespace) -> int:
 
 
 def _request(args: argparse.Namespace):
-    from .plan import CaptureRequest
+    from rig.acquire.plan import CaptureRequest
     return CaptureRequest(tuple(args.estimate), tuple(args.channels.upper()), args.complements,   # RequestError:
                           None if args.roi is None else tuple(args.roi))                        # exit 2
 
 
 def _cmd_plan(args: argparse.Namespace) -> int:
-    from .geometry import rig_geometry
-    from .plan import budget, build_plan, devices_used, omissions, summarize
+    from rig.acquire.geometry import rig_geometry
+    from rig.acquire.plan import budget, build_plan, devices_used, omissions, summarize
     cfg = load_config(args.config)
     geo = rig_geometry(cfg)
     req = _request(args)
@@ -140,7 +140,7 @@ def _cmd_plan(args: argparse.Namespace) -> int:
 
 
 def _json_out(obj) -> None:
-    from .provenance import json_default
+    from rig.files.provenance import json_default
     print(json.dumps(obj, indent=2, default=json_default))
 
 
@@ -153,7 +153,7 @@ def _say(args: argparse.Namespace):
 def _progress_factory(args: argparse.Namespace):
     if args.no_progress or getattr(args, "quiet", False):
         return None
-    from .runner import ProgressBar
+    from rig.acquire.runner import ProgressBar
     fb = getattr(args, "feedback", None)
 
     def make(steps):
@@ -170,7 +170,7 @@ def _control(args: argparse.Namespace):
     the run ends as paused, to be continued with `rig resume`."""
     import threading
 
-    from .runner import RunControl
+    from rig.acquire.runner import RunControl
     interactive = sys.stdin is not None and sys.stdin.isatty() and not args.json
     control = RunControl(pause_mode="wait" if interactive else "stop")
     control.notify = lambda m: print(f"\n{m}", file=sys.stderr, flush=True)
@@ -204,7 +204,7 @@ def _run_guarded(args: argparse.Namespace, fn) -> int:
     """Run a capture/resume under the Ctrl-C handlers (first pauses, second aborts). The handlers stay until the
     outcome is printed: a second Ctrl-C that arrives while the run is already ending at a pause is recorded
     (never raised into the cleanup) and the session then ends as aborted, in the journal and the exit code."""
-    from .runner import Aborted, signal_handlers
+    from rig.acquire.runner import Aborted, signal_handlers
     control = _control(args)
     with signal_handlers(control):
         try:
@@ -225,7 +225,7 @@ def _run_guarded(args: argparse.Namespace, fn) -> int:
 
 
 def _cmd_capture(args: argparse.Namespace) -> int:
-    from .capture import capture, simulated
+    from rig.acquire.capture import capture, simulated
     cfg = load_config(args.config)
     if args.sim:
         cfg = simulated(cfg)
@@ -234,8 +234,8 @@ def _cmd_capture(args: argparse.Namespace) -> int:
     if args.sim_world:
         if not args.sim:
             raise SystemExit("rig capture: error: --sim-world needs --sim (it replaces the simulated rig)")
-        from .calibration.run import make_world
-        from .calibration.settings import load_settings
+        from rig.calibration.run import make_world
+        from rig.config.calibration_settings import load_settings
         world = make_world(cfg, load_settings(cfg))
     return _run_guarded(args, lambda control: capture(
         cfg, req, sessions_dir=args.sessions, name=args.name, control=control,
@@ -244,14 +244,14 @@ def _cmd_capture(args: argparse.Namespace) -> int:
 
 
 def _cmd_resume(args: argparse.Namespace) -> int:
-    from .capture import resume
+    from rig.acquire.capture import resume
     return _run_guarded(args, lambda control: resume(
         args.session, simulate=args.sim, control=control, progress_factory=_progress_factory(args),
         say=_say(args), accept_faults=args.accept_fault))
 
 
 def _cmd_report(args: argparse.Namespace) -> int:
-    from .report import write_report
+    from rig.report import write_report
     out = write_report(args.session, out_dir=args.out, fmt=args.format, run_estimators=not args.no_estimate,
                        log=_say(args))
     if args.json:
@@ -262,7 +262,7 @@ def _cmd_report(args: argparse.Namespace) -> int:
 
 
 def _cmd_devices(args: argparse.Namespace) -> int:
-    from .capture import device_report, simulated
+    from rig.acquire.capture import device_report, simulated
     cfg = load_config(args.config)
     if args.sim:
         cfg = simulated(cfg)
@@ -304,29 +304,29 @@ def _int_at_least(lo: int):
 
 def _cmd_estimate(args: argparse.Namespace) -> int:
     if args.what == "single-image":
-        from .scene_estimate import run_cli as run_scene  # a scene file a user brings (docs/scene-file.md)
+        from rig.estimate.scenes import run_cli as run_scene  # a scene file a user brings (docs/scene-file.md)
         return run_scene(args)
     if args.what == "gradients":
-        from .capture_folder import run_cli as run_folder  # a capture folder (docs/capture-folder.md)
+        from rig.estimate.capture_folder import run_cli as run_folder  # a capture folder (docs/capture-folder.md)
         return run_folder(args)
-    from .estimate import estimate_session
-    from .provenance import json_default
+    from rig.estimate.sessions import estimate_session
+    from rig.files.provenance import json_default
     out = estimate_session(args.session, calibration=args.calibration, log=_say(args))
     if args.json:
         print(json.dumps(out, indent=2, default=json_default))
     else:
-        from .estimate import format_rows
+        from rig.estimate.sessions import format_rows
         print(format_rows(out))
     return 0
 
 
 def _cmd_config(args: argparse.Namespace) -> int:
     if args.schema:
-        from .config_check import json_schema
+        from rig.acquire.config_check import json_schema
         print(json.dumps(json_schema(), indent=2))
         return 0
     if args.check:
-        from .config_check import check_config
+        from rig.acquire.config_check import check_config
         out = check_config(args.check)
         if args.json:
             _json_out(out)
@@ -336,7 +336,7 @@ def _cmd_config(args: argparse.Namespace) -> int:
                   f"of every estimator: {b['frames']} frames, peak {b['max_current_a']:.2f} A of "
                   f"{b['max_total_current_a']:g} A, {b['peak_temperature_c']:.1f} C of {b['over_temperature_c']:g} C)")
     else:
-        from .config import default_config_text
+        from rig.config import default_config_text
         if args.json:
             _json_out({"ok": True, "file": "<package>/rig/data/default_rig.toml", "text": default_config_text()})
         else:
@@ -380,7 +380,7 @@ class _Version(argparse.Action):
 
     def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: object,
                  option_string: str | None = None) -> None:
-        from . import __version__
+        from rig import __version__
         print(f"rig (sssrig) {__version__}")
         parser.exit()
 
@@ -532,7 +532,7 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--json", action="store_true", help="print the summary as JSON instead of a table")
     p.set_defaults(func=_cmd_estimate)
 
-    from .calibration.cli import add_parser as add_calibrate
+    from rig.calibration.cli import add_parser as add_calibrate
     add_calibrate(sub)
 
     p = sub.add_parser("config", help="print the default config, --check a file, or print the --schema")
@@ -565,7 +565,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import os
     if os.name != "posix":  # pragma: no cover - exercised only off POSIX
-        from . import POSIX_ONLY
+        from rig import POSIX_ONLY
         print(f"rig: error: {POSIX_ONLY}", file=sys.stderr)
         return 2
     argv = list(sys.argv[1:] if argv is None else argv)
@@ -578,7 +578,7 @@ def main(argv: list[str] | None = None) -> int:
         else:
             print(exc.usage + exc.message, file=sys.stderr)
         return 2
-    from .feedback import Feedback, setup_logging
+    from rig.feedback import Feedback, setup_logging
     setup_logging(getattr(args, "verbose", 0), getattr(args, "log_level", None))
     quiet = getattr(args, "quiet", False)
     args.quiet = quiet

@@ -12,13 +12,13 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-from .config import load_config
-from .estimate import estimate_session, format_rows
-from .factory import open_devices, start_simulators
-from .geometry import geometry_to_dict, rig_geometry
-from .plan import CaptureRequest, build_plan
-from .runner import run_plan
-from .session import Session
+from rig.config import load_config
+from rig.estimate.sessions import estimate_session, format_rows
+from rig.acquire.factory import open_devices, start_simulators
+from rig.acquire.geometry import geometry_to_dict, rig_geometry
+from rig.acquire.plan import CaptureRequest, build_plan
+from rig.acquire.runner import run_plan
+from rig.files.session import Session
 
 
 def run_demo(*, config_path: str | Path | None = None, sessions_dir: str | Path = "sessions",

@@ -23,7 +23,7 @@ import numpy as np
 
 from drivers.camera.raw import load_linear
 
-from .session import Session, atomic_write_bytes
+from rig.files.session import Session, atomic_write_bytes
 
 THUMB_PX = 160
 
@@ -75,8 +75,8 @@ def gradient_maps(session: Session):
 def single_image_profile(session: Session) -> dict[str, Any] | None:
     """Data points for the R(d) plot: the binned profile R'(d) of the single-image method's Tikhonov variant
     on the session's key-light frame, through the same inputs (and calibration) as its estimate
-    (rig.estimate.run_single_image). None without a key-light frame or its surveys."""
-    from .estimate import _Frames, resolve_calibration, run_single_image
+    (rig.estimate.sessions.run_single_image). None without a key-light frame or its surveys."""
+    from rig.estimate.sessions import _Frames, resolve_calibration, run_single_image
 
     surveys = session.surveys()
     frames = _Frames(session, resolve_calibration(session))
@@ -191,7 +191,7 @@ def write_report(root: str | Path, *, out_dir: str | Path | None = None, fmt: st
     out.mkdir(parents=True, exist_ok=True)
     estimates = session.estimates()
     if not estimates and run_estimators and session.frames():
-        from .estimate import estimate_session
+        from rig.estimate.sessions import estimate_session
         say("no estimates yet: running the estimators")
         estimate_session(session.root, log=say)
         estimates = session.estimates()
@@ -224,7 +224,7 @@ def write_report(root: str | Path, *, out_dir: str | Path | None = None, fmt: st
     params = parameter_rows(estimates)
     errors = []
     if truth:
-        from .estimate import _rows
+        from rig.estimate.sessions import _rows
         for name, est in estimates.items():
             errors += _rows(name, est, truth)
     events = list(session.events())

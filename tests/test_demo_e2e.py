@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from rig.config import default_config_text
-from rig.session import Session
+from rig.files.session import Session
 
 
 def _small_config(tmp_path):

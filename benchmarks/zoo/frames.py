@@ -204,7 +204,7 @@ def content_hash(spec: SceneSpec) -> str:
 def build_scene(spec: SceneSpec, root: Path) -> tuple[Path, dict[str, Any]]:
     """The scene folder (rendered now, or found in the cache) and its meta data."""
     from drivers.atomic import atomic_write
-    from rig.imageio import write_exr, write_png16
+    from rig.files.imageio import write_exr, write_png16
 
     folder = root / content_hash(spec)
     meta_path = folder / "meta.json"

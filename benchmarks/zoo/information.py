@@ -1,6 +1,6 @@
 """Is the information there? The likelihood profile of a zoo frame along sigma_s' (docs/model-error.md sec. 4).
 
-For each scene: Monte Carlo references rendered from the *scene file* (rig.scene_reference: the mesh, camera,
+For each scene: Monte Carlo references rendered from the *scene file* (rig.estimate.reference.scene_reference: the mesh, camera,
 lights and map the estimator is given) at f x (sigma_s', sigma_a) of the truth, f in ``--factors`` (default 0.8,
 0.9, 1, 1.1, 1.25): sigma_a is scaled with sigma_s', so the albedo -- which sets the brightness of a uniformly lit
 body -- is held and only the optical size of the object changes, and sigma_a is then re-optimised at every f to
@@ -13,7 +13,7 @@ uses the same seeds (common random numbers); two seeds (``--seeds``) give an unb
 chi^2 of the frame against each render, per channel, two ways:
 
 - ``px``: over the object pixels of the faces the estimator observes (view angle below its limit, valid pixels),
-  with the scene's noise model exactly as the estimator builds it (``rig.scene_estimate._pixel_variance``: the
+  with the scene's noise model exactly as the estimator builds it (``rig.estimate.scenes._pixel_variance``: the
   ``[noise]`` section, else the signal-dependent fit to the image) plus the renders' own Monte Carlo variance;
   this is the frame's likelihood;
 - ``patch``: over the estimator's patches (3 x 3 window means sampled as ``estimate_scene`` samples them) in the
@@ -61,12 +61,12 @@ MODEL_ERROR = 0.02   # the reference loop's relative model error ([estimation].m
 
 
 def frame_data(scene: Any) -> dict[str, Any]:
-    """The frame as the estimator reads it (rig.scene_estimate.estimate_scene): patches, valid pixels, the
+    """The frame as the estimator reads it (rig.estimate.scenes.estimate_scene): patches, valid pixels, the
     per-pixel variance of the noise model, the observations at the patches and their standard errors, all in
     radiance units (value / radiance_scale)."""
     from estimation.single_image import patches_from_mesh
-    from rig.pixel_map import pixel_faces, sample_at_points
-    from rig.scene_estimate import _pixel_variance
+    from rig.estimate.pixel_map import pixel_faces, sample_at_points
+    from rig.estimate.scenes import _pixel_variance
 
     cam = scene.camera.model
     est = scene.estimation
@@ -111,9 +111,9 @@ def _perp(x: np.ndarray, d: np.ndarray, w: np.ndarray) -> np.ndarray:
 
 
 def scene_profile(index: int, *, spp: int, seeds: list[int], factors: list[float]) -> dict[str, Any]:
-    from rig.pixel_map import sample_at_points
-    from rig.scene_file import load_scene
-    from rig.scene_reference import scene_reference
+    from rig.estimate.pixel_map import sample_at_points
+    from rig.files.scene_file import load_scene
+    from rig.estimate.reference.scene_reference import scene_reference
 
     specs = draw_zoo() + draw_nonconvex()
     spec = specs[index]

@@ -1,6 +1,6 @@
 """Issue 15's acceptance rules on the zoo's (scene, channel) pairs, and the one reader of a result's status.
 
-Status contract (:func:`channel_status`): a result JSON (``rig.scene_estimate.estimate_scene``) with a ``status``
+Status contract (:func:`channel_status`): a result JSON (``rig.estimate.scenes.estimate_scene``) with a ``status``
 field {"sigma_s_prime_per_mm": [...], "sigma_a_per_mm": [...]} of per-channel "ok" | "weak" | "unknown" (and
 ``status_reasons``) is read as it is; without it, today's fields decide: ``success`` false -> "failed";
 mc-table+reference with ``converged`` false -> sigma_s' and sigma_a "weak"; ``sigma_a_identifiable`` false ->

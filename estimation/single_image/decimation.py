@@ -198,7 +198,7 @@ def gather_patch_pixels(image: Array, variance: Array, valid: NDArray[np.bool_],
                         ) -> tuple[Array, Array, NDArray[np.intp]]:
     """Radiance of each patch from its pixels (module docstring, 4): ``image``, ``variance``, ``valid`` (H, W, C),
     ``pixel_face`` (H, W) the full face seen by each pixel (-1: background), ``face_to_patch`` (F,),
-    ``pixel_points_mm`` (H, W, 3) the surface point of each pixel (e.g. ``rig.pixel_map.pixel_faces(..., points=)``), the
+    ``pixel_points_mm`` (H, W, 3) the surface point of each pixel (e.g. ``rig.estimate.pixel_map.pixel_faces(..., points=)``), the
     patches'
     ``centers_mm`` and unit ``normals`` (K, 3). A least-squares plane over the patch's tangent-plane coordinates
     of its valid pixels' surface points (linear along the surface, not in the foreshortened image), evaluated at

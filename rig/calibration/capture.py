@@ -3,8 +3,8 @@
 A calibration step describes what it needs as a list of :class:`Shot` (one frame: a pattern — every LED
 ``full``, one LED ``key``, or the sphere dark ``ambient`` — a polarizer state and an exposure, optionally after
 an operator action such as "place the mirror ball") and :class:`Survey` items (a total-station target).
-:func:`build_plan` turns them into ``rig.plan.Step`` rows (upload, polarization, checkpoint, select, trigger,
-fetch, survey, all_off) that ``rig.runner.run_plan`` executes into a session folder, exactly as ``rig capture``
+:func:`build_plan` turns them into ``rig.acquire.plan.Step`` rows (upload, polarization, checkpoint, select, trigger,
+fetch, survey, all_off) that ``rig.acquire.runner.run_plan`` executes into a session folder, exactly as ``rig capture``
 does; frames are then read back from the session with ``drivers.camera.raw.load_linear``.
 
 Operator actions are ``checkpoint`` steps whose params carry ``operator`` (what to do); :func:`capture` passes
@@ -28,11 +28,11 @@ import numpy.typing as npt
 
 from drivers.errors import LimitError
 
-from ..config import RigConfig
-from ..geometry import RigGeometry, geometry_to_dict, rig_geometry
-from ..plan import Step, pattern_current_a, pattern_for
-from ..session import FrameRecord, Session, validate_session_name
-from .context import CalibrationFailed
+from rig.config import RigConfig
+from rig.acquire.geometry import RigGeometry, geometry_to_dict, rig_geometry
+from rig.acquire.plan import Step, pattern_current_a, pattern_for
+from rig.files.session import FrameRecord, Session, validate_session_name
+from rig.calibration.context import CalibrationFailed
 
 FloatArray = npt.NDArray[np.float64]
 LIT_PATTERNS = ("full", "key", "x", "y", "z", "x_c", "y_c", "z_c")
@@ -259,7 +259,7 @@ def _session_name(prefix: str, sessions_dir: Path) -> str:
 @contextlib.contextmanager
 def _rig(config: RigConfig, geometry: RigGeometry, world: Any | None) -> Iterator[tuple[Any, Any]]:
     """Open the devices (starting the simulators first when the config asks for them)."""
-    from ..factory import open_devices, skip_exposure_waits, start_simulators, uses_simulators
+    from rig.acquire.factory import open_devices, skip_exposure_waits, start_simulators, uses_simulators
 
     with contextlib.ExitStack() as stack:
         sim = None
@@ -289,7 +289,7 @@ def capture(config: RigConfig, step_name: str, items: Sequence[Shot | Survey], *
     ``operator``: called with a checkpoint's ``operator`` params before it (real rig: tell the operator and
     wait); in simulation ``world.operate`` is used when no operator is given. ``pattern_peak``: the drive of
     every lit LED in this capture (default ``[sphere] pattern_peak``)."""
-    from ..runner import run_plan
+    from rig.acquire.runner import run_plan
 
     say = say or (lambda m: None)
     sessions_dir = Path(sessions_dir)

@@ -76,10 +76,10 @@ def _fmt(v: Any) -> str:
 
 
 def run_cli(args: argparse.Namespace) -> int:
-    from ..config import load_config
-    from ..provenance import json_default
-    from .run import ORDER, run_step
-    from .settings import load_settings
+    from rig.config import load_config
+    from rig.files.provenance import json_default
+    from rig.calibration.run import ORDER, run_step
+    from rig.config.calibration_settings import load_settings
 
     config = load_config(args.config)
     settings = load_settings(config)
@@ -87,8 +87,8 @@ def run_cli(args: argparse.Namespace) -> int:
     steps = ORDER if args.step == "all" else (args.step,)
     world = None
     if args.sim:
-        from ..capture import simulated
-        from .run import make_world
+        from rig.acquire.capture import simulated
+        from rig.calibration.run import make_world
 
         world = make_world(simulated(config), settings)
     reports = []

@@ -10,11 +10,11 @@ import numpy as np
 from drivers.errors import RigError
 from estimation.camera import PinholeCamera
 
-from ..config import RigConfig
-from ..geometry import RigGeometry
-from .common import Intrinsics
-from .settings import CalibrationSettings
-from .store import Calibration
+from rig.config import RigConfig
+from rig.acquire.geometry import RigGeometry
+from rig.files.camera_intrinsics import Intrinsics
+from rig.config.calibration_settings import CalibrationSettings
+from rig.files.calibration_store import Calibration
 
 __all__ = ["StepContext", "StepOutput", "CalibrationFailed"]
 

@@ -16,9 +16,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from .capture import Captured, Shot, exposure_ms
-from .context import StepContext, StepOutput
-from .led_directions import _highlight_exposure, _spread, highlight_centroid, visible_leds
+from rig.calibration.capture import Captured, Shot, exposure_ms
+from rig.calibration.context import StepContext, StepOutput
+from rig.calibration.led_directions import _highlight_exposure, _spread, highlight_centroid, visible_leds
 
 SECTION = "extinction"
 FloatArray = npt.NDArray[np.float64]

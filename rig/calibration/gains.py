@@ -23,10 +23,11 @@ import numpy.typing as npt
 
 from estimation.camera import intersect_sphere
 
-from .capture import Captured, Shot, design_irradiance, design_value_per_radiance, displayed_drive, exposure_for
-from .common import angle_deg, split_error
-from .context import StepContext, StepOutput
-from .led_directions import _spread, ball_in_rig
+from rig.calibration.capture import (Captured, Shot, design_irradiance, design_value_per_radiance, displayed_drive,
+                                     exposure_for)
+from rig.calibration.common import angle_deg, split_error
+from rig.calibration.context import StepContext, StepOutput
+from rig.calibration.led_directions import _spread, ball_in_rig
 
 SECTION = "gains"
 FloatArray = npt.NDArray[np.float64]

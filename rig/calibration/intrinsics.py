@@ -18,10 +18,11 @@ from typing import Any, Sequence
 import numpy as np
 import numpy.typing as npt
 
-from .capture import Captured, Shot, design_irradiance, exposure_for
-from .common import Intrinsics, to_uint8
-from .context import StepContext, StepOutput
-from .settings import BoardSettings, aruco_dictionary
+from rig.calibration.capture import Captured, Shot, design_irradiance, exposure_for
+from rig.files.camera_intrinsics import Intrinsics
+from rig.calibration.common import to_uint8
+from rig.calibration.context import StepContext, StepOutput
+from rig.config.calibration_settings import BoardSettings, aruco_dictionary
 
 SECTION = "intrinsics"
 # measured (issue 18): on the simulated rig k2 came out -1.74 against a true +0.22 while the model's rotation-free
@@ -143,7 +144,7 @@ def model_difference_px(a: Intrinsics, b: Intrinsics, grid: int = 25) -> dict[st
       (a small rotation is indistinguishable from a principal-point shift and is absorbed by the camera pose,
       so this is what the calibration must get right: where each pixel's ray points relative to the others);
     - ``distortion_only_max_px``: a's distortion with b's K against b."""
-    from .common import fit_transform
+    from rig.calibration.common import fit_transform
 
     u, v = np.meshgrid(np.linspace(0, b.width_px - 1, grid), np.linspace(0, b.height_px - 1, grid))
     uv = np.stack([u, v], -1).reshape(-1, 2)

@@ -8,9 +8,9 @@ import re
 import numpy as np
 import numpy.typing as npt
 
-from ..config import RigConfig
-from ..geometry import RigGeometry, rig_geometry
-from .settings import CalibrationSettings
+from rig.config import RigConfig
+from rig.acquire.geometry import RigGeometry, rig_geometry
+from rig.config.calibration_settings import CalibrationSettings
 
 FloatArray = npt.NDArray[np.float64]
 POSE_TARGET = re.compile(r"^aruco_(\d+)$")

@@ -24,9 +24,10 @@ import numpy.typing as npt
 
 from estimation.camera import intersect_sphere
 
-from .capture import Captured, Shot, design_irradiance, exposure_and_peak, exposure_for
-from .common import Intrinsics, SphereFit, angle_deg, reflect, sphere_from_silhouette, split_error
-from .context import StepContext, StepOutput
+from rig.calibration.capture import Captured, Shot, design_irradiance, exposure_and_peak, exposure_for
+from rig.files.camera_intrinsics import Intrinsics
+from rig.calibration.common import SphereFit, angle_deg, reflect, sphere_from_silhouette, split_error
+from rig.calibration.context import StepContext, StepOutput
 
 SECTION = "led_directions"
 FloatArray = npt.NDArray[np.float64]

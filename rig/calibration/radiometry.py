@@ -26,9 +26,9 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from .capture import Captured, Shot, design_irradiance, displayed_drive, exposure_ms
-from .context import StepContext, StepOutput
-from .linearity import fit_linearity, linearize
+from rig.calibration.capture import Captured, Shot, design_irradiance, displayed_drive, exposure_ms
+from rig.calibration.context import StepContext, StepOutput
+from rig.files.linearity import fit_linearity, linearize
 
 SECTION = "radiometry"
 FloatArray = npt.NDArray[np.float64]
@@ -44,7 +44,7 @@ def _tile_radiance(ctx: StepContext) -> float:
 
 def shots(ctx: StepContext) -> list[Shot]:
     r, cfg = ctx.settings.radiometry, ctx.config
-    from .capture import design_value_per_radiance
+    from rig.calibration.capture import design_value_per_radiance
 
     per_s = design_value_per_radiance(cfg, 1.0) * _tile_radiance(ctx)
     t_top = r.series_top_fraction / per_s

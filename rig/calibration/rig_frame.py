@@ -21,11 +21,12 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from .capture import Captured, Shot, Survey, design_irradiance, exposure_for
-from .common import Intrinsics, angle_deg, fit_transform, rotation_angle_deg, to_uint8
-from .context import StepContext, StepOutput
-from .layout import LED_TARGET, POSE_TARGET, pose_targets, survey_leds
-from .settings import aruco_dictionary
+from rig.calibration.capture import Captured, Shot, Survey, design_irradiance, exposure_for
+from rig.files.camera_intrinsics import Intrinsics
+from rig.calibration.common import angle_deg, fit_transform, rotation_angle_deg, to_uint8
+from rig.calibration.context import StepContext, StepOutput
+from rig.calibration.layout import LED_TARGET, POSE_TARGET, pose_targets, survey_leds
+from rig.config.calibration_settings import aruco_dictionary
 
 SECTION = "rig_frame"
 FloatArray = npt.NDArray[np.float64]

@@ -15,14 +15,14 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any, Callable
 
-from ..config import RigConfig
-from ..session import now_iso, software_version
-from . import extinction, gains, intrinsics, led_directions, radiometry, rig_frame, seed_k
-from .capture import capture
-from .context import CalibrationFailed, StepContext, StepOutput
-from .layout import calibration_geometry
-from .settings import CalibrationSettings, load_settings
-from .store import Calibration, load_calibration, write_section
+from rig.config import RigConfig
+from rig.files.session import now_iso, software_version
+from rig.calibration import extinction, gains, intrinsics, led_directions, radiometry, rig_frame, seed_k
+from rig.calibration.capture import capture
+from rig.calibration.context import CalibrationFailed, StepContext, StepOutput
+from rig.calibration.layout import calibration_geometry
+from rig.config.calibration_settings import CalibrationSettings, load_settings
+from rig.files.calibration_store import Calibration, load_calibration, write_section
 
 STEPS: dict[str, ModuleType] = {
     "intrinsics": intrinsics,
@@ -63,7 +63,7 @@ class StepReport:
 
 
 def make_world(config: RigConfig, settings: CalibrationSettings, **kw: Any) -> Any:
-    from .simworld import SimulatedCalibrationWorld
+    from rig.calibration.simworld import SimulatedCalibrationWorld
 
     return SimulatedCalibrationWorld(config, settings, **kw)
 
@@ -88,7 +88,7 @@ def run_step(step: str, config: RigConfig, *, out: str | Path, sessions_dir: str
     or, with ``require_predecessors``, refuses (:class:`CalibrationFailed`) before touching a device."""
     if step not in STEPS:
         raise ValueError(f"unknown calibration step {step!r}; expected one of {', '.join(STEPS)}")
-    from ..capture import simulated
+    from rig.acquire.capture import simulated
 
     say = say or (lambda m: None)
     mod = STEPS[step]
@@ -143,8 +143,8 @@ def run_step(step: str, config: RigConfig, *, out: str | Path, sessions_dir: str
         # material and the sensor gain, so the manifest's ``truth`` of the world does not hold them)
         import json
 
-        from ..provenance import json_default
-        from ..session import atomic_write_bytes
+        from rig.files.provenance import json_default
+        from rig.files.session import atomic_write_bytes
         atomic_write_bytes(cap.session.root / "truth_comparison.json",
                            (json.dumps(report.truth, indent=2, default=json_default) + "\n").encode())
     return report
@@ -154,7 +154,7 @@ def run_all(config: RigConfig, *, out: str | Path, steps: tuple[str, ...] = ORDE
     """Every step in order (one simulated world for all of them when simulating)."""
     settings = kw.pop("settings", None) or load_settings(config)
     if kw.get("simulate") and kw.get("world") is None:
-        from ..capture import simulated
+        from rig.acquire.capture import simulated
 
         kw["world"] = make_world(simulated(config), settings)
     return [run_step(s, config, out=out, settings=settings, **kw) for s in steps]

@@ -21,8 +21,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from .capture import Captured, Shot, Survey, displayed_drive, exposure_ms
-from .context import StepContext, StepOutput
+from rig.calibration.capture import Captured, Shot, Survey, displayed_drive, exposure_ms
+from rig.calibration.context import StepContext, StepOutput
 
 SECTION = "seed_k"
 FloatArray = npt.NDArray[np.float64]
@@ -39,7 +39,7 @@ def reference_D_mm(sigma_s_prime_per_mm: npt.ArrayLike, sigma_a_per_mm: npt.Arra
 
 
 def shots(ctx: StepContext) -> list[Shot | Survey]:
-    from .simworld import reference_material
+    from rig.calibration.simworld import reference_material
 
     cfg = ctx.config
     name, _, _, _, radius = reference_material(cfg, ctx.settings)
@@ -60,9 +60,9 @@ def compute(ctx: StepContext, cap: Captured) -> StepOutput:
     from estimation.gradients import LedRig, albedo_scale_from_radiometry, compute_maps
     from scipy.ndimage import binary_erosion
 
-    from ..patterns import pattern_values
-    from .capture import design_value_per_radiance
-    from .simworld import reference_material
+    from rig.acquire.patterns import pattern_values
+    from rig.calibration.capture import design_value_per_radiance
+    from rig.calibration.simworld import reference_material
 
     cfg, s = ctx.config, ctx.settings.seed_k
     name, ssp, sa, eta, radius = reference_material(cfg, ctx.settings)

@@ -15,16 +15,16 @@ from simulators.targets import (CalibrationTruth, CharucoBoardTarget, DarkTarget
                                 MarkerPlatesTarget, MirrorBallTarget, TargetWorld, TileTarget,
                                 TranslucentSphereTarget, charuco_poses)
 
-from ..config import MATERIALS, RigConfig
-from ..geometry import RigGeometry, rig_geometry
-from .layout import POSE_TARGET, calibration_geometry
-from .settings import CalibrationSettings, aruco_dictionary
+from rig.config import MATERIALS, RigConfig
+from rig.acquire.geometry import RigGeometry, rig_geometry
+from rig.calibration.layout import POSE_TARGET, calibration_geometry
+from rig.config.calibration_settings import CalibrationSettings, aruco_dictionary
 
 __all__ = ["SimulatedCalibrationWorld", "reference_material", "simulated_camera"]
 
 
 def simulated_camera(sim: Any) -> Any:
-    """The ``SimulatedCamera`` of a running ``rig.factory.SimulatedRig``."""
+    """The ``SimulatedCamera`` of a running ``rig.acquire.factory.SimulatedRig``."""
     from simulators.camera import SimulatedCamera
 
     cam = getattr(sim, "camera", None)
@@ -145,7 +145,7 @@ class SimulatedCalibrationWorld:
         self.world.attach(simulated_camera(sim))
 
     def truth_geometry(self) -> RigGeometry:
-        """What ``rig.factory.start_simulators`` builds the simulators from: true LEDs, camera and targets."""
+        """What ``rig.acquire.factory.start_simulators`` builds the simulators from: true LEDs, camera and targets."""
         pos = self.truth.led_positions_mm
         return RigGeometry(pos, pos / np.linalg.norm(pos, axis=1, keepdims=True), self.truth.camera.pinhole,
                            self.design.key_led, dict(self.truth.targets_mm))

@@ -10,8 +10,8 @@ from pathlib import Path
 import pytest
 
 from rig.calibration.run import ORDER, make_world, run_all
-from rig.calibration.settings import load_settings
-from rig.capture import simulated
+from rig.config.calibration_settings import load_settings
+from rig.acquire.capture import simulated
 from rig.config import load_config
 
 RIG_TOML = Path(__file__).with_name("calibration_rig.toml")

@@ -9,7 +9,7 @@ import json
 
 import numpy as np
 
-from rig.calibration.store import load_calibration
+from rig.files.calibration_store import load_calibration
 
 
 def _truth(chain, step):

@@ -10,8 +10,8 @@ import pytest
 
 from rig.calibration.cli import STEP_HELP, add_parser
 from rig.calibration.run import CalibrationFailed, make_world, run_step
-from rig.calibration.store import load_calibration, write_section
-from rig.capture import simulated
+from rig.files.calibration_store import load_calibration, write_section
+from rig.acquire.capture import simulated
 
 RIG_TOML = Path(__file__).with_name("calibration_rig.toml")
 

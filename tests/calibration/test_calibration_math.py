@@ -7,11 +7,12 @@ import pytest
 from drivers.errors import ConfigError, LimitError
 from estimation.camera import PinholeCamera
 from rig.calibration.capture import Shot, Survey, build_plan, exposure_and_peak
-from rig.calibration.common import Intrinsics, fit_transform, reflect, sphere_from_silhouette
+from rig.files.camera_intrinsics import Intrinsics
+from rig.calibration.common import fit_transform, reflect, sphere_from_silhouette
 from rig.calibration.led_directions import highlight_centroid, led_direction_from_highlight
 from rig.calibration.radiometry import fit_linearity, linearize
 from rig.calibration.rig_frame import camera_pose_pnp, refine_leds
-from rig.calibration.settings import load_settings
+from rig.config.calibration_settings import load_settings
 from simulators.targets import DiffuseSphereTarget, LensCamera, distort_normalized, rotation_about
 
 DIST = (-0.18, 0.22, 6e-4, -4e-4, 0.0)
@@ -79,7 +80,7 @@ def test_sphere_from_silhouette_of_a_rendered_ball():
     lens, intr = _cam()
     center = np.array([3.0, 5.0, -2.0])
     target = DiffuseSphereTarget(tuple(center), 20.0)
-    from rig.geometry import led_layout
+    from rig.acquire.geometry import led_layout
 
     leds, _ = led_layout(4, 1000.0, -60.0)                   # every LED on: the whole visible side is lit
     img = target.render(lens, leds, np.full((len(leds), 3), 1000.0), 0)[..., 1]

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from drivers.errors import RigError
-from rig.calibration.store import (SCHEMA_VERSION, CalibrationError, load_calibration, read_document,
+from rig.files.calibration_store import (SCHEMA_VERSION, CalibrationError, load_calibration, read_document,
                                    write_section)
 
 PROV = {"created": "2026-01-01T00:00:00+00:00", "session": "/s/calib-x", "software_version": "0.1.0"}

@@ -24,7 +24,7 @@ def lens():
 
 @pytest.fixture(scope="module")
 def leds():
-    from rig.geometry import led_layout
+    from rig.acquire.geometry import led_layout
 
     return led_layout(4, 1000.0, -60.0)[0]
 
@@ -64,7 +64,7 @@ def test_charuco_render_puts_corners_at_their_true_projections(lens, leds):
 def test_plate_centres_project_where_the_reflector_is(lens, leds):
     from scipy.ndimage import gaussian_filter
 
-    from rig.calibration.common import Intrinsics
+    from rig.files.camera_intrinsics import Intrinsics
     from rig.calibration.rig_frame import detect_marker_centers
 
     plates = [MarkerPlate(32 + i, (x, y, z), (0.0, -1.0, 0.2), marker_mm=8.0, target_mm=8.0, margin_mm=2.4)

@@ -21,12 +21,12 @@ import numpy as np
 import pytest
 
 from rig.calibration.run import run_step
-from rig.capture import capture, simulated
+from rig.acquire.capture import capture, simulated
 from rig.cli import build_parser, main
-from rig.estimate import estimate_session
-from rig.geometry import rig_geometry
-from rig.plan import CaptureRequest
-from rig.session import Session, SessionError
+from rig.estimate.sessions import estimate_session
+from rig.acquire.geometry import rig_geometry
+from rig.acquire.plan import CaptureRequest
+from rig.files.session import Session, SessionError
 
 
 @pytest.fixture(scope="module")
@@ -185,7 +185,7 @@ def test_cli_options(capsys):
 
 
 def test_capture_refuses_a_calibration_of_another_rig(run, cal_config, tmp_path):
-    from rig.calibration.store import CalibrationError
+    from rig.files.calibration_store import CalibrationError
 
     other = tmp_path / "other.json"
     doc = json.loads(run["cal"].read_text())

@@ -5,7 +5,7 @@ frames are rendered once and stored; rerun this script to regenerate them; minut
     NUMBA_NUM_THREADS=1 python tests/data/make_relief_capture.py OUT_FOLDER MATERIAL [N_PX PX_MM SPP RMS_SLOPE]
 
 Scene: a thick slab (simulators.scene.BumpySlabObject, eta 1.3, reduced coefficients of science.md sec. 2) with a
-random relief (wavelengths 1.5-6 mm, RMS slope RMS_SLOPE), 362 LEDs at 1 m (rig.geometry.led_layout) rendered as a
+random relief (wavelengths 1.5-6 mm, RMS slope RMS_SLOPE), 362 LEDs at 1 m (rig.acquire.geometry.led_layout) rendered as a
 distant map, full + x + y + z in both polarizations (the parallel frames add the analytic GGX lobe), an
 orthographic camera looking along +y, a 14-bit sensor's expected values (no noise: the Monte Carlo error is the
 noise). The folder has no geometry (shape "unknown"); ``true_normals.npy`` (H, W, 3, rig frame) holds the truth.
@@ -31,9 +31,9 @@ GAIN, BLACK, WHITE, EXPOSURE = 4.5e7, 512, 16383, 0.02
 def main(out: str, material: str, n_px: int = 64, px_mm: float = 0.2, spp: int = 128, rms_slope: float = 0.1) -> None:
     from estimation.camera import OrthographicCamera
     from estimation.gradients import LedRig
-    from rig.folder_reference import renderable_camera
-    from rig.geometry import led_layout
-    from rig.imageio import write_exr
+    from rig.estimate.reference.folder_reference import renderable_camera
+    from rig.acquire.geometry import led_layout
+    from rig.files.imageio import write_exr
     from simulators.camera import SensorModel
     from simulators.mc_capture import MCSettings
     from simulators.scene import BumpySlabObject, render_gradient_capture

@@ -31,7 +31,7 @@ from estimation.diffusion import (curvature_sq_from_normals, estimate_diffusion,
                                   sphere_albedo, sphere_shortening, summarize)
 from estimation.dipole import total_diffuse_reflectance
 from estimation.gradients import LedRig, albedo_scale_from_radiometry, build_response_lut, compute_maps
-from rig.geometry import led_layout
+from rig.acquire.geometry import led_layout
 from simulators.camera import SensorModel
 from simulators.scene import BumpySlabObject, MeshObject, SphereObject, render_gradient_capture
 

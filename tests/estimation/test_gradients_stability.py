@@ -18,7 +18,7 @@ from estimation.diffusion import (calibrate_k, curvature_sq_from_normals, diffus
                                   estimate_sphere, summarize)
 from estimation.dipole import total_diffuse_reflectance
 from estimation.gradients import GradientMaps, LedRig, albedo_scale_from_radiometry, build_response_lut, compute_maps
-from rig.geometry import led_layout
+from rig.acquire.geometry import led_layout
 from simulators.camera import SensorModel
 from simulators.scene import BumpySlabObject, SphereObject, render_gradient_capture
 

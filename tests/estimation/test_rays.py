@@ -118,7 +118,7 @@ def test_auto_falls_back_to_the_numba_bvh_without_embreex() -> None:
             "import trimesh\n"
             "from estimation.rays import RayEngine, embree_available\n"
             "from estimation.camera import PinholeCamera\n"
-            "from rig.pixel_map import pixel_faces\n"
+            "from rig.estimate.pixel_map import pixel_faces\n"
             "b = trimesh.creation.box()\n"
             "assert not embree_available() and RayEngine(b.vertices, b.faces).backend == 'bvh'\n"
             "try:\n"

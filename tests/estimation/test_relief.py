@@ -15,7 +15,7 @@ import pytest
 from estimation.gradients import LedRig, albedo_scale_from_radiometry, compute_maps
 from estimation.relief import (fit_relief_windows, normal_noise_rad, normals_from_height, parameters_from_l_prime,
                                summarize_relief)
-from rig.imageio import read_image
+from rig.files.imageio import read_image
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "relief_skin1"
 ETA = 1.3

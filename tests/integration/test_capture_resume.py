@@ -17,7 +17,7 @@ import pytest
 from drivers.camera.raw import load_linear
 from drivers.led_sphere import open_led_sphere_serial
 from rig.config import default_config_text
-from rig.session import Session
+from rig.files.session import Session
 
 SMALL = (("width_px = 112", "width_px = 24"), ("height_px = 112", "height_px = 24"), ("fx_px = 1700.0", "fx_px = 400.0"),
          ("geodesic_frequency = 6", "geodesic_frequency = 3"), ("tessellation = 4", "tessellation = 2"),

@@ -23,10 +23,10 @@ from estimation.diffusion import sphere_albedo, sphere_geometry
 from estimation.dipole import dipole_coefficients, profile_from_coefficients, total_diffuse_reflectance
 from estimation.fresnel import fresnel_moment, fresnel_transmittance
 from estimation.gradients import GRADIENT_PATTERNS, LedRig, albedo_scale_from_radiometry, tau_ratio
-from rig.capture_folder import OrthographicCamera, estimate_capture, load_capture, missing_frames
+from rig.estimate.capture_folder import OrthographicCamera, estimate_capture, load_capture, missing_frames
 from rig.cli import main
-from rig.imageio import write_exr, write_float_tiff, write_png16
-from rig.maps_io import PREVIEW_TILE_PX, read_maps
+from rig.files.imageio import write_exr, write_float_tiff, write_png16
+from rig.files.maps_io import PREVIEW_TILE_PX, read_maps
 from simulators.dng import write_dng
 
 ETA = 1.3
@@ -537,8 +537,8 @@ def test_drive_values_reach_the_led_model(small_capture) -> None:
 def test_memory_mapped_intermediates_give_the_same_maps(small_capture, tmp_path) -> None:
     """Large captures keep their full-size intermediate maps in memory maps (MEMMAP_MIN_PX); forcing that path
     on a small capture gives the same files, and the scratch folder is gone afterwards."""
-    from rig.capture_folder import estimate_capture
-    from rig.maps_io import read_maps
+    from rig.estimate.capture_folder import estimate_capture
+    from rig.files.maps_io import read_maps
 
     cap = load_capture(small_capture)
     ram = estimate_capture(cap, tmp_path / "ram", "exr", 32, preview="opencv", memmap_min_px=10 ** 12)
@@ -557,7 +557,7 @@ def test_memory_mapped_intermediates_give_the_same_maps(small_capture, tmp_path)
 def test_model_option_reaches_the_estimate_and_the_sidecar(small_capture, tmp_path, capsys, model) -> None:
     """``--model`` selects the grounded estimator's profile model; the summary and the sidecar name it and report
     its bias against the Monte Carlo table at the fitted parameters (1 for the table itself)."""
-    from rig.maps_io import read_maps
+    from rig.files.maps_io import read_maps
 
     s = run_json(small_capture, capsys, "--model", model, "--out", str(tmp_path / "m"))
     d = s["diffusion"]
@@ -582,7 +582,7 @@ def test_unknown_model_is_rejected(small_capture, capsys) -> None:
 
 # ---------------------------------------------------------------------------------------------------- --reference
 # A capture folder whose frames are a simulated gradient capture (simulators.scene.render_gradient_capture) of a 10 mm
-# skin1 sphere (science.md sec. 2, eta 1.3): 362 LEDs at 1 m (rig.geometry.led_layout), full + x, y, z
+# skin1 sphere (science.md sec. 2, eta 1.3): 362 LEDs at 1 m (rig.acquire.geometry.led_layout), full + x, y, z
 # cross-polarized, 32 x 32 px pinhole at 400 mm, a 14-bit sensor's expected values (no noise) written as EXR with
 # value_per_radiance_per_s = gain / (white - black).
 SKIN1 = (np.array([0.74, 0.88, 1.01]), np.array([0.032, 0.17, 0.48]))
@@ -597,7 +597,7 @@ def write_simulated_capture(folder: Path, render_mode: str, *, seed: int = SIM_F
                             geometry: bool = True, camera: str = "pinhole", ideal: bool = False, px: int = SIM_PX
                             ) -> Path:
     from estimation.camera import PinholeCamera
-    from rig.geometry import led_layout
+    from rig.acquire.geometry import led_layout
     from simulators.camera import SensorModel
     from simulators.mc_capture import MCSettings
     from simulators.scene import SphereObject, render_gradient_capture
@@ -605,7 +605,7 @@ def write_simulated_capture(folder: Path, render_mode: str, *, seed: int = SIM_F
     pos, _ = led_layout(6, 1000.0, -60.0)
     inten = np.full((len(pos), 3), 1000.0)
     if ideal:       # continuous gradients, as the folder's --reference approximates them
-        from rig.folder_diffusion import ideal_reference_leds
+        from rig.estimate.folder_diffusion import ideal_reference_leds
         pos, inten = ideal_reference_leds()
         inten = inten * 0.03          # radiance 0.03: the 14-bit sensor's range at this exposure
     rig = LedRig.from_positions(pos, inten)
@@ -616,8 +616,8 @@ def write_simulated_capture(folder: Path, render_mode: str, *, seed: int = SIM_F
                                        position_mm=(0.0, -400.0, 0.0), target_mm=(0.0, 0.0, 0.0))
         cam_toml = ['model = "pinhole"', f"fx_px = {cam.fx_px}", "position_mm = [0.0, -400.0, 0.0]",
                     "look_at_mm = [0.0, 0.0, 0.0]"]
-    else:   # the same field of view, orthographic (the simulator needs view_directions: rig.folder_reference)
-        from rig.folder_reference import renderable_camera
+    else:   # the same field of view, orthographic (the simulator needs view_directions: rig.estimate.reference.folder_reference)
+        from rig.estimate.reference.folder_reference import renderable_camera
         cam = renderable_camera(OrthographicCamera.looking_at(width_px=SIM_PX, height_px=SIM_PX,
                                                               pixel_size_mm=20.0 / SIM_PX, direction=(0.0, 1.0, 0.0)))
         cam_toml = ['model = "orthographic"', f"pixel_size_mm = {20.0 / SIM_PX!r}", "look_direction = [0.0, 1.0, 0.0]"]
@@ -660,9 +660,9 @@ def test_reference_units_fast_render_of_the_folder_sphere_is_a_fixed_point(tmp_p
     measured corrected sigma_s', sigma_a, D within 4e-4 of the truth (plain sphere inversion: D +0.4..+0.9 %, the
     fast renderer's patch quadrature), kappa_albedo 0.9994-1.0002. A wrong scale (e.g. a missing exposure or
     value_per_radiance) would shift the fixed point by that factor in the albedo. Pinhole and orthographic
-    (rendered through rig.folder_reference.renderable_camera) cameras."""
-    from rig.capture_folder import estimate_capture
-    from rig.folder_reference import implied_value_per_radiance_per_s
+    (rendered through rig.estimate.reference.folder_reference.renderable_camera) cameras."""
+    from rig.estimate.capture_folder import estimate_capture
+    from rig.estimate.reference.folder_reference import implied_value_per_radiance_per_s
 
     folder = write_simulated_capture(tmp_path / "fast", "fast", camera=camera)
     cap = load_capture(folder)
@@ -675,7 +675,7 @@ def test_reference_units_fast_render_of_the_folder_sphere_is_a_fixed_point(tmp_p
     np.testing.assert_allclose(r["reference"]["value_per_radiance_per_s"], SIM_GAIN / (SIM_WHITE - SIM_BLACK),
                                rtol=1e-12)
     leds = cap.leds.rig(cap.gradient_patterns)
-    from rig.capture_folder import _reference_normal
+    from rig.estimate.capture_folder import _reference_normal
     np.testing.assert_allclose(implied_value_per_radiance_per_s(s["albedo_scale"], leds, ETA,
                                                                 _reference_normal(cap.camera)),
                                SIM_GAIN / (SIM_WHITE - SIM_BLACK), rtol=1e-12)
@@ -749,10 +749,10 @@ def test_reference_needs_a_sphere_and_is_refused_clearly(tmp_path, capsys) -> No
 
 def test_reference_with_ideal_gradients_renders_a_dense_led_set(tmp_path) -> None:
     """Issue 16: --reference is no longer refused for ideal (continuous) gradients: the reference renders a dense
-    synthetic LED set (rig.folder_diffusion.ideal_reference_leds; the renderer reads LEDs as a distant map anyway)
+    synthetic LED set (rig.estimate.folder_diffusion.ideal_reference_leds; the renderer reads LEDs as a distant map anyway)
     and reduces the renders with the folder's ideal model. Fast renders (the dipole), one iteration: the plumbing,
     not the accuracy."""
-    from rig.folder_diffusion import ideal_reference_leds
+    from rig.estimate.folder_diffusion import ideal_reference_leds
 
     pos, inten = ideal_reference_leds()
     assert len(pos) == 1962 and np.allclose(np.linalg.norm(pos, axis=1), 1e5)

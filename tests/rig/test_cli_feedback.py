@@ -13,7 +13,7 @@ from drivers.errors import ConfigError
 from rig import __version__
 from rig.cli import main
 from rig.feedback import Feedback
-from rig.sim_faults import parse_faults
+from rig.acquire.sim_faults import parse_faults
 
 
 def _rig(*args, cwd=None):
@@ -78,8 +78,8 @@ def test_simulators_remove_their_own_temporary_folder():
     """start_simulators without a work folder makes its own and removes it on close (issue 18: `rig sim` left a
     /tmp/sssrig-simcam-* folder per run)."""
     from rig.config import load_config
-    from rig.factory import start_simulators
-    from rig.geometry import rig_geometry
+    from rig.acquire.factory import start_simulators
+    from rig.acquire.geometry import rig_geometry
 
     cfg = load_config()
     sim = start_simulators(cfg, rig_geometry(cfg))

@@ -78,8 +78,8 @@ def test_duplicate_target_names_refused():
 def test_scene_render_mode_reaches_the_simulated_camera(tmp_path):
     """[scene] render = "mc" makes the simulated camera render with Monte Carlo light transport, and the session's
     truth says which renderer made the frames (the estimators' model comparison names it)."""
-    from rig.factory import start_simulators
-    from rig.geometry import rig_geometry
+    from rig.acquire.factory import start_simulators
+    from rig.acquire.geometry import rig_geometry
 
     data = _default()
     data["scene"].update(render="mc", mc_spp=8)

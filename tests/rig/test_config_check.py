@@ -12,7 +12,7 @@ import pytest
 
 from drivers.errors import ConfigError
 from rig.config import default_config_text
-from rig.config_check import check_config, json_schema, packaged_schema_text
+from rig.acquire.config_check import check_config, json_schema, packaged_schema_text
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -15,11 +15,11 @@ from drivers.errors import ConfigError, ConnectionLost
 from drivers.trigger.hid_box import HidTrigger
 from drivers.trigger.serial_release import SerialRelease
 from rig.config import TRIGGER_KEYS, TriggerConfig, default_config_text, parse_config
-from rig.factory import open_camera, open_devices, open_trigger, start_simulators
-from rig.geometry import geometry_to_dict, rig_geometry
-from rig.plan import build_plan
-from rig.runner import run_plan
-from rig.session import Session
+from rig.acquire.factory import open_camera, open_devices, open_trigger, start_simulators
+from rig.acquire.geometry import geometry_to_dict, rig_geometry
+from rig.acquire.plan import build_plan
+from rig.acquire.runner import run_plan
+from rig.files.session import Session
 
 ROOT = Path(__file__).resolve().parents[2]
 

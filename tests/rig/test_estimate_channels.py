@@ -6,10 +6,10 @@ import tomllib
 import numpy as np
 import pytest
 
-from rig.capture import capture, simulated
+from rig.acquire.capture import capture, simulated
 from rig.cli import main
 from rig.config import default_config_text, parse_config
-from rig.plan import CaptureRequest
+from rig.acquire.plan import CaptureRequest
 
 SMALL = {"sphere": {"geodesic_frequency": 3},
          "camera": {"width_px": 32, "height_px": 32, "fx_px": 500.0, "key_exposure_s": 0.3},

@@ -19,9 +19,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from rig.capture_folder import load_capture
+from rig.estimate.capture_folder import load_capture
 from rig.cli import main
-from rig.imageio import read_image, write_exr
+from rig.files.imageio import read_image, write_exr
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "relief_skin1"
 SSP, SA = np.array([0.74, 0.88, 1.01]), np.array([0.032, 0.17, 0.48])

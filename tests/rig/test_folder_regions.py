@@ -1,4 +1,4 @@
-"""Per-region summaries from a labelled region image (``[object] regions``; rig.folder_regions; issue 16 item 1).
+"""Per-region summaries from a labelled region image (``[object] regions``; rig.estimate.folder_regions; issue 16 item 1).
 
 Captures reused, nothing new rendered: the 10 mm marble sphere of tests/rig/test_capture_folder.py (dipole render,
 84 x 80 px, one material: simulators.scene has no per-region materials) and the cached Monte Carlo relief slab
@@ -16,11 +16,11 @@ import numpy as np
 import pytest
 import test_capture_folder as _tcf
 
-from rig.capture_folder import format_summary
+from rig.estimate.capture_folder import format_summary
 from rig.cli import main
-from rig.folder_regions import MIN_REGION_PIXELS
-from rig.imageio import read_image
-from rig.maps_io import read_maps
+from rig.estimate.folder_regions import MIN_REGION_PIXELS
+from rig.files.imageio import read_image
+from rig.files.maps_io import read_maps
 
 marble_scene = _tcf.marble_scene              # the module-scoped fixture of test_capture_folder
 write_marble_capture = _tcf.write_marble_capture
@@ -176,8 +176,8 @@ def test_a_channel_with_too_few_pixels_is_unknown_and_leaves_the_others() -> Non
     known in only 5 and 3 pixels of the region -> "unknown" with the reason, values None, no model bias for them;
     red recovers marble's D as the whole-object path would (the same summarize + widening)."""
     from estimation.diffusion import DiffusionMaps, sphere_albedo, sphere_shortening
-    from rig.folder_regions import _sphere_region
-    from rig.provenance import jsonable
+    from rig.estimate.folder_regions import _sphere_region
+    from rig.files.provenance import jsonable
 
     ssp, sa, eta, rho, n = _tcf.MARBLE[0], _tcf.MARBLE[1], _tcf.ETA, _tcf.RADIUS, 8
     A = np.broadcast_to(sphere_albedo(rho, ssp, sa, eta), (n, n, 3)).astype(np.float32)

@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rig.imageio import (ImageFileError, read_image, write_exr, write_float_tiff, write_png16, write_png8)
+from rig.files.imageio import (ImageFileError, read_image, write_exr, write_float_tiff, write_png16, write_png8)
 from simulators.dng import write_dng
 
 

@@ -1,4 +1,4 @@
-"""Round trips of rig.maps_io: float maps (EXR / TIFF) with NaN = unknown, the mask bit field, the JSON sidecar,
+"""Round trips of rig.files.maps_io: float maps (EXR / TIFF) with NaN = unknown, the mask bit field, the JSON sidecar,
 the preview sheet (matplotlib and the OpenCV fallback), and the reader's refusals.
 
 The maps come from estimation.gradients.compute_maps on continuous-gradient frames of a sphere (Ma et al. 2007
@@ -17,7 +17,7 @@ import pytest
 from estimation.diffusion import diffusion_seed, estimate_diffusion
 from estimation.fresnel import fresnel_transmittance
 from estimation.gradients import compute_maps, tau_ratio
-from rig.maps_io import (MASK_BITS, PREVIEW_TILE_PX, MapsError, preview_size_px, read_maps, write_maps)
+from rig.files.maps_io import (MASK_BITS, PREVIEW_TILE_PX, MapsError, preview_size_px, read_maps, write_maps)
 
 ETA = 1.3
 
@@ -161,7 +161,7 @@ def test_without_diffusion_or_specular(tmp_path, estimates) -> None:
 def test_reader_refuses_altered_missing_or_foreign_folders(tmp_path, estimates) -> None:
     maps, dm, *_ = estimates
     write_maps(tmp_path, maps, dm, fmt="exr", provenance=PROV)
-    from rig.imageio import write_exr
+    from rig.files.imageio import write_exr
     write_exr(tmp_path / "D_mm.exr", np.ones((20, 20, 3), np.float32))
     with pytest.raises(MapsError, match=r"D_mm\.exr: sha256 differs from maps\.json"):
         read_maps(tmp_path)
@@ -188,7 +188,7 @@ def test_writer_rejects_unknown_format(tmp_path, estimates) -> None:
 def test_selection_lists_what_was_left_out_and_how_to_derive_it(tmp_path, estimates) -> None:
     """``select`` writes only the named maps; maps.json names every left-out map with its derivation from the
     written files, and the derivation reproduces the estimator's own map (float32 rounding)."""
-    from rig.maps_io import DERIVATIONS, select_maps
+    from rig.files.maps_io import DERIVATIONS, select_maps
 
     maps, dm, seed, _ = estimates
     sel = select_maps("albedo_diffuse,normals_diffuse,alpha_prime,D_mm")

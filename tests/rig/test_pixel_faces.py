@@ -1,4 +1,4 @@
-"""rig.pixel_map.pixel_faces: exact pixel-to-face maps by one ray per pixel centre (estimation.rays.RayEngine).
+"""rig.estimate.pixel_map.pixel_faces: exact pixel-to-face maps by one ray per pixel centre (estimation.rays.RayEngine).
 
 The scenes are non-convex: a painter's order by face-centroid depth (the rasterizer this replaced, kept below as
 ``_painters_order`` to show that each scene does tell the two apart) draws a far face over a near one when the
@@ -12,7 +12,7 @@ import trimesh
 
 from estimation.camera import PinholeCamera
 from estimation.single_image import patches_from_mesh
-from rig.pixel_map import pixel_faces
+from rig.estimate.pixel_map import pixel_faces
 
 
 def _painters_order(mesh: trimesh.Trimesh, camera: PinholeCamera) -> np.ndarray:

@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from rig.geometry import geodesic_directions, led_layout
-from rig.patterns import pattern_rgb16, pattern_values
+from rig.acquire.geometry import geodesic_directions, led_layout
+from rig.acquire.patterns import pattern_rgb16, pattern_values
 
 
 @pytest.mark.parametrize("f", [1, 2, 5, 6])

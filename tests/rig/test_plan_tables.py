@@ -8,8 +8,8 @@ import pytest
 from drivers.errors import ConfigError, LimitError
 from rig.cli import main
 from rig.config import default_config_text, parse_config
-from rig.geometry import rig_geometry
-from rig.plan import CaptureRequest, Step, budget, build_plan, omissions, steps_from_dicts, summarize
+from rig.acquire.geometry import rig_geometry
+from rig.acquire.plan import CaptureRequest, Step, budget, build_plan, omissions, steps_from_dicts, summarize
 
 
 def _config(**sections):

@@ -6,11 +6,11 @@ import tomllib
 import numpy as np
 import pytest
 
-from rig.capture import capture, simulated
+from rig.acquire.capture import capture, simulated
 from rig.cli import main
 from rig.config import default_config_text, parse_config
-from rig.plan import CaptureRequest, RequestError
-from rig.session import Session
+from rig.acquire.plan import CaptureRequest, RequestError
+from rig.files.session import Session
 
 SMALL = {"sphere": {"geodesic_frequency": 3},
          "camera": {"width_px": 32, "height_px": 32, "fx_px": 500.0, "key_exposure_s": 0.3},

@@ -15,11 +15,11 @@ from drivers.camera.folder import FolderCamera
 from drivers.errors import ConnectionLost, DeviceRejected, DeviceTimeout
 from drivers.led_sphere.codec import NackCode
 from rig.config import default_config_text, parse_config
-from rig.factory import open_devices, start_simulators
-from rig.geometry import rig_geometry
-from rig.plan import build_plan
-from rig.runner import Aborted, FaultStop, ProgressBar, RunControl, run_plan, signal_handlers
-from rig.session import Session
+from rig.acquire.factory import open_devices, start_simulators
+from rig.acquire.geometry import rig_geometry
+from rig.acquire.plan import build_plan
+from rig.acquire.runner import Aborted, FaultStop, ProgressBar, RunControl, run_plan, signal_handlers
+from rig.files.session import Session
 
 SMALL = {"sphere": {"geodesic_frequency": 3, "watchdog_s": 1.5},
          "trigger": {"timeout_s": 0.3},
@@ -456,7 +456,7 @@ def test_control_defers_a_signal_abort_out_of_journal_writes():
 
 
 def test_session_lock_refuses_a_second_writer(tmp_path):
-    from rig.session import SessionBusy
+    from rig.files.session import SessionBusy
     s = Session.create(tmp_path, "x", config={}, devices={}, plan=[])
     with s.lock():
         with pytest.raises(SessionBusy):

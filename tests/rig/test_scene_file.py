@@ -33,9 +33,9 @@ from estimation.forward import (diffuse_exitance, irradiance_directional, irradi
                                 radiance_from_exitance)
 from estimation.single_image import EnvironmentMap
 from rig.cli import main as rig_main
-from rig.imageio import write_exr, write_float_tiff, write_png16, write_png8
-from rig.scene_file import load_scene
-from rig.scene_spec import SceneFileError, environment_directions
+from rig.files.imageio import write_exr, write_float_tiff, write_png16, write_png8
+from rig.files.scene_file import load_scene
+from rig.files.scene_spec import SceneFileError, environment_directions
 from simulators.dng import write_cfa_dng
 
 from _scene_files import merge_sections, run_single_image, write_scene  # tests/rig/_scene_files.py
@@ -252,7 +252,7 @@ def test_environment_rotation_key_equals_rotated_map(tmp_path, capsys):
 
 def test_environment_orientation_keys(tmp_path):
     """up / phi0 / azimuth / rotation_deg map the map's pixels to the documented world directions."""
-    from rig.scene_spec import EnvironmentSpec
+    from rig.files.scene_spec import EnvironmentSpec
 
     h, w = 8, 16
     img = np.zeros((h, w, 1))
@@ -311,7 +311,7 @@ def test_lat_long_conventions_of_common_renderers(tmp_path, tool):
     """The keys of docs/scene-file.md's table map every pixel of a map made for that tool to the direction the
     tool looks it up in (its lookup formula inverted). The ICT-probe row is the former y-up example of the docs;
     it is 180 degrees off for a Mitsuba map."""
-    from rig.scene_spec import EnvironmentSpec
+    from rig.files.scene_spec import EnvironmentSpec
 
     h, w = 8, 16
     to_dir, keys = LAT_LONG_TOOLS[tool]

@@ -17,9 +17,9 @@ from estimation.camera import PinholeCamera
 from estimation.shadows import point_light_visibility
 from estimation.single_image import decimate_mesh, patches_from_decimated
 from rig.cli import main as rig_main
-from rig.imageio import write_exr
-from rig.scene_file import load_scene
-from rig.scene_spec import AUTO_PATCHES, SceneFileError, resolve_patches
+from rig.files.imageio import write_exr
+from rig.files.scene_file import load_scene
+from rig.files.scene_spec import AUTO_PATCHES, SceneFileError, resolve_patches
 from simulators.scene import MeshObject, render_object
 
 SSP, SA, ETA = 2.0, 0.005, 1.3

@@ -13,9 +13,9 @@ import trimesh
 
 from estimation.camera import PinholeCamera
 from rig.cli import main as rig_main
-from rig.imageio import write_exr
-from rig.scene_file import load_scene
-from rig.scene_spec import environment_directions
+from rig.files.imageio import write_exr
+from rig.files.scene_file import load_scene
+from rig.files.scene_spec import environment_directions
 
 from _scene_files import merge_sections, run_single_image, write_scene  # tests/rig/_scene_files.py
 
@@ -156,7 +156,7 @@ def test_mc_reference_environment_orientation_is_the_estimators(tmp_path):
     1.003/0.992/0.997, 1.000/0.983/0.957, 0.990/0.983/1.004 (Monte Carlo noise of a face mean, ~2 %), hence 8 %;
     with the orientation keys ignored 0.78/0.79/0.32. ~2 s."""
     from estimation.single_image import EnvironmentMap
-    from rig.scene_reference import scene_reference
+    from rig.estimate.reference.scene_reference import scene_reference
     from simulators.mc import Medium, Mesh, render
 
     sun = np.array([0.35, -0.8, 0.5])
@@ -181,7 +181,7 @@ def test_mc_reference_environment_orientation_is_the_estimators(tmp_path):
 
     def reference(name: str, document: dict[str, Any]) -> np.ndarray:
         from estimation.single_image import patches_from_mesh
-        from rig.pixel_map import pixel_faces
+        from rig.estimate.pixel_map import pixel_faces
 
         scene = load_scene(write_scene(tmp_path, document, name))
         pat = patches_from_mesh(scene.mesh_data, scene.camera.model)
@@ -194,7 +194,7 @@ def test_mc_reference_environment_orientation_is_the_estimators(tmp_path):
     ph = 2 * np.pi * (np.arange(w) + 0.5) / w
     t, p = np.meshgrid(th, ph, indexing="ij")
     native = np.stack([np.sin(t) * np.cos(p), np.sin(t) * np.sin(p), np.cos(t)], -1)
-    from rig.pixel_map import pixel_faces, sample_at_points
+    from rig.estimate.pixel_map import pixel_faces, sample_at_points
     scene = load_scene(tmp_path / "oriented.toml")
     img = render(Mesh(scene.render_mesh_data), [Medium.from_reduced(*material, eta=MC_ETA)], cam,
                  EnvironmentMap(sky(native)), spp=128, seed=8)
@@ -224,7 +224,7 @@ def test_mc_reference_accepts_point_lights_through_a_non_convex_refracting_mesh_
     a scanned mesh) under a point light at eta 1.3: refused before issue 17's BVH connections (exit status 2); now
     the reference's scene check passes and hands the renderer a mesh connected through its BVH (the renders:
     tests/simulators/test_mc_bvh_connections.py)."""
-    from rig.scene_reference import check_reference_scene
+    from rig.estimate.reference.scene_reference import check_reference_scene
     from simulators.mc.shapes import BVH_CONNECTIONS, MAX_CONNECTION_PLANES
 
     cam = _mc_camera(24)
@@ -244,7 +244,7 @@ def test_mc_reference_accepts_point_lights_through_a_non_convex_refracting_mesh_
 def test_mc_reference_pixel_rays_of_a_distorted_camera(tmp_path):
     """With [camera].distortion the reference renders the distorted image: the ray of every pixel centre
     projects back onto that pixel through OpenCV's model (cv2.projectPoints)."""
-    from rig.scene_spec import DistortedCamera
+    from rig.files.scene_spec import DistortedCamera
 
     cam = _mc_camera(40)
     dist = [-20.0, 150.0, 0.002, -0.001, 0.0]

@@ -13,9 +13,9 @@ import tomli_w
 from drivers.contracts import Polarization
 from estimation.camera import PinholeCamera
 from rig.cli import main as rig_main
-from rig.imageio import write_exr
-from rig.scene_file import load_scene
-from rig.scene_spec import SceneFileError
+from rig.files.imageio import write_exr
+from rig.files.scene_file import load_scene
+from rig.files.scene_spec import SceneFileError
 from simulators.scene import MeshObject, render_object, wall_on_slab_mesh
 
 SSP, SA, ETA = 2.0, 0.05, 1.3

@@ -4,7 +4,7 @@ Six scenes of the zoo (drawn with default_rng(15); benchmarks/zoo/scenes.py) cho
 of issue 15: a visible face the point light does not reach, an index-matched (eta = 1) cube, an environment map
 with a sun lobe, a Monte Carlo frame with its fireflies, exact zeros (read noise clipped at 0), camera shot + read
 noise; 48 x 48 px, 64-spp frames, written as scene files and estimated through the user path
-(rig.scene_file.load_scene + estimate_scene) with every model; mc-table+reference at 32 spp, at most 4 renders.
+(rig.files.scene_file.load_scene + estimate_scene) with every model; mc-table+reference at 32 spp, at most 4 renders.
 
 Rules (benchmarks/zoo/rules.py), asserted per model over the (scene, channel) pairs:
 - S90 (mc-table+reference only; the flat models' edge bias is documented in docs/model-error.md): sigma_s' within

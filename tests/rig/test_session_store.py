@@ -3,7 +3,7 @@ import json
 
 import pytest
 
-from rig.session import Session, SessionError, atomic_write_bytes, validate_session_name
+from rig.files.session import Session, SessionError, atomic_write_bytes, validate_session_name
 
 
 @pytest.mark.parametrize("name", ["../evil", "a/b", ".hidden", "", "x" * 65, "a..b", "sp ace"])

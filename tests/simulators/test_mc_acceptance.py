@@ -9,7 +9,7 @@ Tolerances:
   mismatch (pi, or the exit normalization c = 0.939 at eta 1.3) would be off by >= 6 %.
 - the acceptance itself (sigma_s' within 10 %, sigma_a within 50 % or flagged with an interval holding the
   truth) is met by the best model, mc-table corrected by Monte Carlo reference renders of the known box
-  (estimation.model_correction, rig.mc_reference), at this small size with 32-spp references (4 renders of ~1.5 s);
+  (estimation.model_correction, rig.estimate.reference.mc_reference), at this small size with 32-spp references (4 renders of ~1.5 s);
   the fast models alone miss sigma_s' by 25-40 % on this cube (the flat-surface R(d) sum is wrong at its edges,
   where the information about sigma_s' sits) and are only checked against each other here.
   benchmarks/mc_single_image.py prints the full-size verdict.
@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 from mc_single_image import ETA, MODELS, REFERENCE_SEED, TOL_SA, TOL_SSP, TRUTH, fit_row, observations, render_frame
 from estimation.camera import PinholeCamera
 from estimation.single_image import predict_radiance
-from rig.mc_reference import MonteCarloReference
+from rig.estimate.reference.mc_reference import MonteCarloReference
 
 SIZE, SPP, EDGE_MM, PATCH_MM = 64, 64, 20.0, 1.0
 

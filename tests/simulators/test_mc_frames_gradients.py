@@ -36,8 +36,8 @@ from estimation.dipole import total_diffuse_reflectance
 from estimation.gradient_correction import estimate_sphere_with_reference
 from estimation.gradients import LedRig, albedo_scale_from_radiometry, build_response_lut, compute_maps
 from estimation.mc_table import default_table
-from rig.geometry import led_layout
-from rig.mc_reference import GradientsMonteCarloReference
+from rig.acquire.geometry import led_layout
+from rig.estimate.reference.mc_reference import GradientsMonteCarloReference
 from simulators.camera import SensorModel
 from simulators.mc_capture import MCSettings, led_environment, relief_mesh
 from simulators.scene import BumpySlabObject, SphereObject, render_gradient_capture, render_object

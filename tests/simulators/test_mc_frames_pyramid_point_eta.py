@@ -32,8 +32,8 @@ import numpy as np
 
 from estimation.model_correction import estimate_with_reference
 from estimation.single_image import estimate_single_image
-from rig.pixel_map import sample_at_points
-from rig.mc_reference import MonteCarloReference
+from rig.estimate.pixel_map import sample_at_points
+from rig.estimate.reference.mc_reference import MonteCarloReference
 from test_mc_frames_single_image import MATERIALS, REFERENCE_SEED, SEED, TOL_SA, TOL_SSP, errors
 from test_mc_frames_single_image import setup as frame_setup
 

@@ -83,8 +83,8 @@ from estimation.camera import PinholeCamera
 from estimation.model_correction import estimate_with_reference
 from estimation.single_image import EnvironmentMap, PointLights, estimate_single_image, patches_from_mesh, \
     predict_radiance
-from rig.pixel_map import pixel_faces, sample_at_points
-from rig.mc_reference import MonteCarloReference
+from rig.estimate.pixel_map import pixel_faces, sample_at_points
+from rig.estimate.reference.mc_reference import MonteCarloReference
 
 MATERIALS = {"marble-R": (2.19, 0.002), "skin1-R": (0.74, 0.032)}   # science.md sec. 2 (marble: seed truth)
 TOL_SSP, TOL_SA = 0.10, 0.50

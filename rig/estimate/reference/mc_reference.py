@@ -2,7 +2,7 @@
 
 It simulates the measurement: the Monte Carlo renderer (:func:`simulators.mc.render`) draws the object in its
 known geometry, seen by the capture's camera under the capture's lights, and the image is sampled at the patch
-centres exactly as the observations were (:func:`rig.pixel_map.sample_at_points`: a 3 x 3 window mean and its
+centres exactly as the observations were (:func:`rig.estimate.pixel_map.sample_at_points`: a 3 x 3 window mean and its
 standard error, NaN where a window pixel is off the object or outside ``valid_px``). Sampling effects (windows
 that straddle an edge, pixel footprints) therefore enter the reference and the observations alike and cancel in
 the correction kappa = reference / fast model.
@@ -29,7 +29,7 @@ from estimation.gradient_correction import SphereObservables
 from estimation.gradients import GradientMaps
 from estimation.single_image import Patches
 
-from .pixel_map import sample_at_points
+from rig.estimate.pixel_map import sample_at_points
 
 __all__ = ["MonteCarloReference", "GradientsMonteCarloReference"]
 
@@ -73,7 +73,7 @@ class MonteCarloReference:
         log sigma_a) (K, C, 2) and its stderr, from the same paths (:func:`simulators.mc.render`)."""
         from simulators.mc import Medium, render
 
-        from .feedback import numba_notice
+        from rig.feedback import numba_notice
         numba_notice()
 
         ssp = np.atleast_1d(np.asarray(sigma_s_prime_per_mm, dtype=np.float64))
@@ -164,7 +164,7 @@ class GradientsMonteCarloReference:
         from simulators.mc_capture import MCSettings
         from simulators.scene import SphereObject, render_gradient_capture
 
-        from .feedback import numba_notice
+        from rig.feedback import numba_notice
         if self.render_mode == "mc":
             numba_notice()
 

@@ -14,10 +14,10 @@ import numpy as np
 
 from drivers.errors import ConfigError
 
-from ..data import default_config_text
+from rig.data import default_config_text
 
 if TYPE_CHECKING:  # annotations only: rig.config imports this module to check [calibration]
-    from ..config import RigConfig
+    from rig.config import RigConfig
 
 Vec3 = tuple[float, float, float]
 
@@ -158,7 +158,7 @@ class CalibrationSettings:
 def _model() -> Any:
     global _MODEL
     if _MODEL is None:
-        from ..schema import model_from_dataclass
+        from rig.config.schema import model_from_dataclass
 
         _MODEL = model_from_dataclass(CalibrationSettings, name="CalibrationTable")
     return _MODEL
@@ -170,7 +170,7 @@ _MODEL: Any = None
 def _parse(file: str, table: Any, config: RigConfig | None = None) -> CalibrationSettings:
     """Check ``table`` against the schema built from these dataclasses (unknown keys refused with a "did you
     mean", strict types), then the rules across keys (:func:`_check`)."""
-    from ..schema import validate
+    from rig.config.schema import validate
 
     model = validate(table, file, _model(), prefix=("calibration",))
     s = CalibrationSettings()

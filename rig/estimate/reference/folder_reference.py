@@ -38,7 +38,7 @@ from estimation.diffusion import SphereEstimate, estimate_sphere
 from estimation.gradient_correction import SphereObservables, estimate_sphere_with_reference
 from estimation.gradients import GradientMaps, LedRig, albedo_scale_from_radiometry
 
-from .mc_reference import GradientsMonteCarloReference
+from rig.estimate.reference.mc_reference import GradientsMonteCarloReference
 
 __all__ = ["REFERENCE_SPP", "REFERENCE_ITERATIONS", "REFERENCE_SEED", "REFERENCE_REL_TOL", "FolderSphereReference",
            "renderable_camera", "implied_value_per_radiance_per_s", "render_exposure_s", "reference_corrected_sphere"]
@@ -93,7 +93,7 @@ def render_exposure_s(led_positions_mm: Any, led_intensity: Any, drives: Mapping
 
 @dataclass
 class FolderSphereReference(GradientsMonteCarloReference):
-    """:class:`rig.mc_reference.GradientsMonteCarloReference` reduced with a capture folder's region summary:
+    """:class:`rig.estimate.reference.mc_reference.GradientsMonteCarloReference` reduced with a capture folder's region summary:
     ``true_normals`` (H, W, 3) and ``region`` (H, W) of the folder's sphere, ``tile_rows`` as the folder's
     estimate. ``maps_fn`` receives the rendered :class:`simulators.scene.GradientCapture`."""
 

@@ -30,7 +30,7 @@ from drivers.atomic import atomic_write_bytes as _atomic_write_bytes
 from drivers.atomic import fsync_dir
 from drivers.errors import RigError
 
-from .provenance import json_default
+from rig.files.provenance import json_default
 
 FORMAT_VERSION = 1
 STOP_STATUSES = ("complete", "paused", "aborted")
@@ -107,7 +107,7 @@ class Session:
                request: dict[str, Any] | None = None,
                calibration: dict[str, Any] | None = None) -> "Session":
         """``calibration``: the calibration file the session is captured with (``file``, ``rig``, ``revision``,
-        ``sha256``; ``rig.capture.calibration_record``), written to the manifest only when given."""
+        ``sha256``; ``rig.acquire.capture.calibration_record``), written to the manifest only when given."""
         validate_session_name(name)
         parent = Path(parent)
         parent.mkdir(parents=True, exist_ok=True)

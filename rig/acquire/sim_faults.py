@@ -57,7 +57,7 @@ def parse_faults(texts: list[str]) -> list[FaultSpec]:
             raise ConfigError("--fault", "device", "DEVICE:FAULT with DEVICE one of " + ", ".join(DEVICES) + ", any",
                               text)
         if name not in FAULTS:
-            from .schema import did_you_mean
+            from rig.config.schema import did_you_mean
             raise ConfigError("--fault", "fault", "one of " + ", ".join(FAULTS) + did_you_mean(name, FAULTS), text)
         devs, kind, _ = FAULTS[name]
         value: float | None = None
@@ -81,7 +81,7 @@ def parse_faults(texts: list[str]) -> list[FaultSpec]:
 
 
 def apply_faults(sim: Any, faults: list[FaultSpec]) -> list[str]:
-    """Apply ``faults`` to a running :class:`rig.factory.SimulatedRig`; returns one line per fault."""
+    """Apply ``faults`` to a running :class:`rig.acquire.factory.SimulatedRig`; returns one line per fault."""
     from drivers.total_station import codec as geocom
 
     applied = []

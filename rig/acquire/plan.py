@@ -29,8 +29,8 @@ import numpy as np
 
 from drivers.errors import LimitError, RigError
 
-from .config import RigConfig
-from .patterns import FULL_SCALE, nearest_led, pattern_rgb16
+from rig.config import RigConfig
+from rig.acquire.patterns import FULL_SCALE, nearest_led, pattern_rgb16
 
 ESTIMATORS = ("gradients", "single-image", "specular")
 DEFAULT_ESTIMATE = ("gradients", "single-image")

@@ -1,8 +1,8 @@
 """Rig configuration: TOML -> frozen dataclasses, validated on load.
 
-The keys, types, ranges and enumerations are the pydantic schema of :mod:`rig.schema` (unknown keys refused with
+The keys, types, ranges and enumerations are the pydantic schema of :mod:`rig.config.schema` (unknown keys refused with
 a "did you mean"); the checks across keys (degenerate camera pose, exposures inside the trigger's range,
-driver-specific rules, targets) are here; ``[calibration]`` is checked by :mod:`rig.calibration.settings`.
+driver-specific rules, targets) are here; ``[calibration]`` is checked by :mod:`rig.config.calibration_settings`.
 Every error names the file, the field, what was expected and the value (``drivers.errors.ConfigError``). The
 default simulated rig ships in ``rig/data/default_rig.toml`` so that ``rig demo`` needs no user files.
 """
@@ -16,8 +16,8 @@ from typing import Any
 
 from drivers.errors import ConfigError
 
-from . import schema
-from .data import DEFAULT_RIG, default_config_text
+import rig.config.schema as schema
+from rig.data import DEFAULT_RIG, default_config_text
 
 # Jensen et al. 2001 Table 2 (pbrt's units: 1/mm, reduced sigma_s'); see shared science.md section 2.
 MATERIALS: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] = {
@@ -196,7 +196,7 @@ class RigConfig:
 
 
 class _Reader:
-    """Typed field access with errors that name the file and the dotted field (``rig.scene_file`` reads with it)."""
+    """Typed field access with errors that name the file and the dotted field (``rig.files.scene_file`` reads with it)."""
 
     def __init__(self, file: str, data: dict[str, Any], prefix: str = "") -> None:
         self.file, self.data, self.prefix = file, data, prefix
@@ -344,7 +344,7 @@ def _check_exposures(file: str, camera: CameraConfig, trigger: TriggerConfig) ->
 
 
 def parse_config(data: dict[str, Any], file: str = "<memory>") -> RigConfig:
-    """Validate a parsed TOML document (:mod:`rig.schema` plus the checks across fields); raise
+    """Validate a parsed TOML document (:mod:`rig.config.schema` plus the checks across fields); raise
     :class:`ConfigError` naming the first bad field. ``[calibration]`` is checked by :func:`load_config`."""
     m = schema.validate(data, file)
     s = m.sphere.model_dump()
@@ -398,7 +398,7 @@ def load_config(path: str | Path | None = None) -> RigConfig:
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(file, "<syntax>", "valid TOML", str(exc)) from exc
     cfg = parse_config(data, file)
-    from .calibration.settings import load_settings   # [calibration]: its keys, types and checks
+    from rig.config.calibration_settings import load_settings   # [calibration]: its keys, types and checks
 
     load_settings(cfg, data.get("calibration", {}))
     return cfg

@@ -1,7 +1,7 @@
 """The camera's view of a mesh: which face each pixel sees (exact, by one ray per pixel through
 :class:`estimation.rays.RayEngine`, issue 17) and the image sampled at projected surface points (window means and
-their variances). Used by the session single-image path (:mod:`rig.estimate`), scene files
-(:mod:`rig.scene_estimate`) and the Monte Carlo references (:mod:`rig.mc_reference`)."""
+their variances). Used by the session single-image path (:mod:`rig.estimate.sessions`), scene files
+(:mod:`rig.estimate.scenes`) and the Monte Carlo references (:mod:`rig.estimate.reference.mc_reference`)."""
 from __future__ import annotations
 
 from typing import Any

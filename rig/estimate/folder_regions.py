@@ -3,7 +3,7 @@
 ``capture.toml`` may name a label image in ``[object]``: ``regions = "regions.png"`` (an 8- or 16-bit
 single-channel PNG, or an ``.npy`` integer array, of the frames' size; 0 = no region, 1..N = regions, every
 label 1..N present) and optionally ``[object.region_names]`` (``1 = "cheek"``, ...). :func:`read_regions` validates
-them with the capture folder's strict table access (``rig.capture_folder._Table``: every error names the file,
+them with the capture folder's strict table access (``rig.estimate.capture_folder._Table``: every error names the file,
 the field and what was expected). :func:`region_summaries` then adds to the summary one entry per region: its
 label, name, pixel count, the map medians (R_d, apparent albedo) and the diffusion summary of the whole-object
 path restricted to the region, made by the same code:
@@ -95,13 +95,13 @@ def _load_label_image(t: Any, p: Path) -> NDArray[Any]:
 
 
 def read_regions(t: Any, folder: Path, shape: tuple[int, int]) -> RegionLabels | None:
-    """Read ``regions`` and ``region_names`` of an ``[object]`` table ``t`` (``rig.capture_folder._Table``).
+    """Read ``regions`` and ``region_names`` of an ``[object]`` table ``t`` (``rig.estimate.capture_folder._Table``).
 
     The label image must have the frames' size (H, W), an integer type, labels in 0..65535, at least one region,
     and every label 1..N (N = its largest label) present; ``region_names`` may name only present labels, each
     with a non-empty string (names default to "region K"). Errors are ``ConfigError`` s naming the file, the
     field and what was expected. Returns None when neither key is given."""
-    from .provenance import sha256_file
+    from rig.files.provenance import sha256_file
 
     if not t.has("regions"):
         if t.has("region_names"):

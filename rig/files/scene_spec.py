@@ -1,8 +1,8 @@
-"""Scene files, the data: what a scene file describes (docs/scene-file.md) once :func:`rig.scene_file.load_scene`
+"""Scene files, the data: what a scene file describes (docs/scene-file.md) once :func:`rig.files.scene_file.load_scene`
 has validated it — mesh, camera (with its lens distortion), image, lights, environment map, material, estimation
 options, noise — and :class:`SceneFileError`, whose message names the file, the key and what was expected.
 
-Read by :mod:`rig.scene_file`, estimated by :mod:`rig.scene_estimate`, rendered by :mod:`rig.scene_reference`
+Read by :mod:`rig.files.scene_file`, estimated by :mod:`rig.estimate.scenes`, rendered by :mod:`rig.estimate.reference.scene_reference`
 (the Monte Carlo reference): the types live here so that none of those imports another in a circle.
 """
 from __future__ import annotations
@@ -27,7 +27,7 @@ MASK_SUFFIXES = (".png", ".tif", ".tiff", ".bmp", ".exr")
 ENV_SUFFIXES = (".exr", ".hdr", ".tif", ".tiff", ".png")
 METHODS = ("direct", "tikhonov", "pinv")
 MODELS = ("dipole-jensen", "dipole-better", "mc-table", "mc-table+reference")
-REFERENCE_MODEL = "mc-table+reference"  # the Monte Carlo table corrected by reference renders (rig.scene_reference)
+REFERENCE_MODEL = "mc-table+reference"  # the Monte Carlo table corrected by reference renders (rig.estimate.reference.scene_reference)
 INTEGER_SATURATION = 0.98  # default saturation level of integer images (16-bit PNG/TIFF, RAW), white = 1
 _AXES = {"+x": (1.0, 0.0, 0.0), "-x": (-1.0, 0.0, 0.0), "+y": (0.0, 1.0, 0.0), "-y": (0.0, -1.0, 0.0),
          "+z": (0.0, 0.0, 1.0), "-z": (0.0, 0.0, -1.0)}

@@ -16,7 +16,7 @@ Layout of an output folder (``docs/capture-folder.md``, section "Outputs"):
     masks.png                 8-bit RGB bit field per channel (MASK_BITS)
     preview.png               contact sheet for people (display-encoded; never for measurement)
 
-Float files are EXR (float32, ZIP) or float32 TIFF (zlib), written atomically by :mod:`rig.imageio`. **NaN means
+Float files are EXR (float32, ZIP) or float32 TIFF (zlib), written atomically by :mod:`rig.files.imageio`. **NaN means
 unknown** (masked: saturated, dark, inconsistent, grazing, background, outside the model's validity); nothing is
 ever written as a number where it is not known. Row 0 is the top of the image, column 0 the left, as in the input
 frames (the pixel convention of :class:`estimation.camera.PinholeCamera`). Vectors are in the rig frame
@@ -41,8 +41,8 @@ from drivers.errors import RigError
 from estimation.diffusion import DiffusionMaps, SeedEstimate
 from estimation.gradients import DerivedMap, GradientMaps
 
-from .imageio import write_exr, write_float_tiff, write_png8
-from .provenance import jsonable, sha256_file
+from rig.files.imageio import write_exr, write_float_tiff, write_png8
+from rig.files.provenance import jsonable, sha256_file
 
 __all__ = ["MAPS_FORMAT", "MAPS_FORMAT_VERSION", "SIDECAR", "PREVIEW", "MASKS", "MASK_BITS", "MAP_SPECS",
            "PREVIEW_TILE_PX", "MapSpec", "MapsError", "LoadedMaps", "write_maps", "read_maps", "preview_size_px",
@@ -177,7 +177,7 @@ def _write_json(path: Path, data: Mapping[str, Any]) -> Path:
 
 
 def _read_float(path: Path) -> NDArray[np.float32]:
-    """Read a float map (EXR or TIFF) keeping NaN (``rig.imageio.read_image`` refuses NaN in *frames*)."""
+    """Read a float map (EXR or TIFF) keeping NaN (``rig.files.imageio.read_image`` refuses NaN in *frames*)."""
     if not path.is_file():
         raise MapsError(path, "no such file (listed in maps.json)")
     try:

@@ -23,10 +23,10 @@ import numpy as np
 
 from drivers.camera.raw import load_linear
 
-from .geometry import camera_from_dict
-from .provenance import sha256_file
-from .pixel_map import pixel_faces, sample_at_points
-from .session import Session, SessionError
+from rig.acquire.geometry import camera_from_dict
+from rig.files.provenance import sha256_file
+from rig.estimate.pixel_map import pixel_faces, sample_at_points
+from rig.files.session import Session, SessionError
 
 SATURATION = 0.98   # linear values at or above this fraction of white are masked
 DARK_LEVEL = 0.01   # full-on signal (fraction of white) below which a pixel, or a whole channel's median, is dark
@@ -50,7 +50,7 @@ class SessionCalibration:
         self._check(manifest)
 
     def _check(self, manifest: dict[str, Any]) -> None:
-        from .calibration.store import CalibrationError
+        from rig.files.calibration_store import CalibrationError
 
         rig_name = manifest.get("config", {}).get("name")
         if rig_name is not None and self.cal.doc.get("rig") != rig_name:
@@ -87,7 +87,7 @@ class SessionCalibration:
     # -- geometry -------------------------------------------------------------------------------------------
     def camera(self) -> Any:
         """The calibrated pinhole (intrinsics + rig-frame pose; design values for a missing section)."""
-        from .calibration.common import Intrinsics
+        from rig.files.camera_intrinsics import Intrinsics
 
         d = self.design_camera
         intr = self.cal.intrinsics() if self.has("intrinsics") else Intrinsics.from_pinhole(d)
@@ -138,10 +138,10 @@ class SessionCalibration:
 
 def resolve_calibration(session: Session, calibration: Any = None) -> SessionCalibration | None:
     """The calibration a session's estimates use: ``calibration`` (a path or a loaded
-    ``rig.calibration.store.Calibration``) if given; else the file the manifest records (``rig capture
+    ``rig.files.calibration_store.Calibration``) if given; else the file the manifest records (``rig capture
     --calibration``), which must still have the recorded SHA-256; else None (design values).
     ``calibration=False`` forces the design values even when the manifest records a file."""
-    from .calibration.store import Calibration, load_calibration
+    from rig.files.calibration_store import Calibration, load_calibration
 
     if calibration is False:
         return None
@@ -238,7 +238,7 @@ class _Frames:
 def requested_channels(manifest: dict[str, Any]) -> list[int]:
     """Indices (0..2) of the colour channels the session's request asked for (all three without a request).
 
-    A channel not requested is dark in every pattern (rig/plan.py): it is not processed, and its
+    A channel not requested is dark in every pattern (rig/acquire/plan.py): it is not processed, and its
     parameters are reported as None ("not requested"), never fitted to darkness."""
     req = manifest.get("request") or {}
     names = [str(c).upper() for c in (req.get("channels") or "RGB")]
@@ -380,9 +380,9 @@ def run_gradients(frames: _Frames, manifest: dict[str, Any], surveys: dict[str, 
     from estimation.gradients import LedRig, albedo_scale_from_radiometry, compute_maps
     from estimation.sphere_bias import widen_sphere_summary
 
-    from .folder_diffusion import dark_channels, mark_channels_unknown
+    from rig.estimate.folder_diffusion import dark_channels, mark_channels_unknown
 
-    from .patterns import pattern_values
+    from rig.acquire.patterns import pattern_values
 
     t0 = time.perf_counter()
     cfg = manifest["config"]

@@ -1,7 +1,7 @@
 """Scene files, the reading: the single-image method on a capture a user brings from elsewhere (docs/scene-file.md).
 
 A scene file (TOML) names a mesh, a calibrated camera, the illumination, eta and one linear image. This module
-validates it (:func:`load_scene`) into the types of :mod:`rig.scene_spec`; :mod:`rig.scene_estimate` runs
+validates it (:func:`load_scene`) into the types of :mod:`rig.files.scene_spec`; :mod:`rig.estimate.scenes` runs
 :func:`estimation.single_image.estimate_single_image` on it and implements ``rig estimate single-image SCENE``.
 
 Every input error raises :class:`SceneFileError` (a :class:`drivers.errors.ConfigError`, hence a ``RigError``)
@@ -22,10 +22,10 @@ from numpy.typing import NDArray
 from drivers.errors import ConfigError
 from estimation.camera import PinholeCamera, look_at_rotation
 
-from .config import _REQUIRED, _Reader
-from .imageio import ImageFileError, RAW_SUFFIXES, read_image
-from .provenance import sha256_file
-from .scene_spec import (_AXES, ENV_SUFFIXES, INTEGER_SATURATION, MASK_SUFFIXES, MESH_SUFFIXES, MESH_UNITS_MM,
+from rig.config import _REQUIRED, _Reader
+from rig.files.imageio import ImageFileError, RAW_SUFFIXES, read_image
+from rig.files.provenance import sha256_file
+from rig.files.scene_spec import (_AXES, ENV_SUFFIXES, INTEGER_SATURATION, MASK_SUFFIXES, MESH_SUFFIXES, MESH_UNITS_MM,
                          METHODS, MODELS, SCENE_FORMAT_VERSION, Array, CameraSpec, DirectionalLightSpec,
                          EnvironmentSpec, EstimationSpec, ImageSpec, MaterialSpec, MeshSpec, NoiseSpec,
                          PointLightSpec, Scene, SceneFileError, Vec3, _max_normalized_radius, patches_error)

@@ -3,7 +3,7 @@
 What the runner guarantees (docs/capture-and-resume.md):
 
 - **resume**: steps whose ``frame``/``survey`` is already journalled are skipped, and so is every step that
-  only serves them (:attr:`rig.plan.Step.serves`); frames a crash left unjournalled are moved aside first
+  only serves them (:attr:`rig.acquire.plan.Step.serves`); frames a crash left unjournalled are moved aside first
   (:meth:`Session.recover`). Setup steps (pattern uploads, polarization) are re-run when still needed.
 - **timeouts**: every step has a deadline (``Step.timeout_s``). Waits (frame fetch, settle, holds) are bounded
   by it; a device call in progress is bounded by its driver's own timeout, and the deadline is checked after it
@@ -45,8 +45,8 @@ from drivers.contracts import Camera, LightSource, Polarization, PositionFeed, T
 from drivers.errors import (ConnectionLost, DeviceBusy, DeviceError, DeviceRejected, DeviceTimeout,
                             ProtocolError, RigError)
 
-from .plan import Step, pattern_for
-from .session import Session, now_iso
+from rig.acquire.plan import Step, pattern_for
+from rig.files.session import Session, now_iso
 
 log = logging.getLogger(__name__)
 

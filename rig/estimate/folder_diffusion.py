@@ -43,7 +43,7 @@ class ReliefGeometry:
 
 
 def read_relief_geometry(t: Any, folder: Path, shape: tuple[int, int], camera: Any) -> ReliefGeometry:
-    """Read ``normals_file`` or ``height_file`` of an ``[object]`` table ``t`` (``rig.capture_folder._Table``);
+    """Read ``normals_file`` or ``height_file`` of an ``[object]`` table ``t`` (``rig.estimate.capture_folder._Table``);
     errors name the file and the key."""
     H, W = shape
     keys = [k for k in ("normals_file", "height_file") if t.has(k)]
@@ -87,8 +87,8 @@ def relief_estimate(maps: Any, true_normals: NDArray[np.float64], source: str, c
     ``relief_D_seed_ratio`` (window median seed D / fitted D) and ``relief_D_seed_disagree`` (1 where the seed lies
     outside the fit's interval, 0 where it agrees, NaN where not compared) and ``versus_seed`` in the summary.
     Returns (summary, files, fit): ``fit`` the :class:`estimation.relief.ReliefFit` (None when the image is
-    smaller than a window), for the per-region summaries (:mod:`rig.folder_regions`)."""
-    from .imageio import write_exr, write_float_tiff
+    smaller than a window), for the per-region summaries (:mod:`rig.estimate.folder_regions`)."""
+    from rig.files.imageio import write_exr, write_float_tiff
 
     H, W = maps.shape
     px = pixel_footprint_mm(camera)
@@ -235,7 +235,7 @@ def ideal_reference_leds(frequency: int = IDEAL_REFERENCE_FREQUENCY, distance_mm
     intensities giving each LED the irradiance 4 pi / N (uniform radiance 1 over the sphere). The Monte Carlo
     renderer reads them as a distant map of 2-degree cells (:mod:`simulators.mc_capture`), i.e. a piecewise-constant
     approximation of the continuous gradients; the rendered frames are then reduced with the folder's ideal model."""
-    from .geometry import led_layout
+    from rig.acquire.geometry import led_layout
 
     pos, _ = led_layout(int(frequency), float(distance_mm), -90.0)
     inten = np.full((len(pos), 3), 4.0 * np.pi / len(pos) * float(distance_mm) ** 2)
@@ -243,7 +243,7 @@ def ideal_reference_leds(frequency: int = IDEAL_REFERENCE_FREQUENCY, distance_mm
 
 
 # --------------------------------------------------------------------------------------------------------------
-# the steps rig.capture_folder.estimate_capture calls
+# the steps rig.estimate.capture_folder.estimate_capture calls
 # --------------------------------------------------------------------------------------------------------------
 def apply_dark_channels(cap: Any, maps: Any, obj: Any, exposure: Any, notes: list[str]) -> list[bool]:
     """:func:`dark_channels` over the object (else the non-background pixels) and :func:`mark_channels_unknown`;
@@ -280,7 +280,7 @@ def relief_branch(cap: Any, maps: Any, obj: Any, out_dir: Path, fmt: str, window
 def write_albedo_apparent(cap: Any, maps: Any, geo_normals: Any, leds: Any, n_ref: Any, out_dir: Path, fmt: str
                           ) -> tuple[NDArray[np.float32], Any]:
     """The apparent albedo (NaN where the maps are unknown) and a function writing it as ``albedo_apparent``."""
-    from .imageio import write_exr, write_float_tiff
+    from rig.files.imageio import write_exr, write_float_tiff
 
     n = geo_normals if geo_normals is not None else (
         cap.relief.normals if cap.relief is not None else maps.specular_normals)

@@ -1,7 +1,7 @@
 """The Monte Carlo reference of a scene file: ``--model mc-table+reference`` (docs/scene-file.md).
 
-:func:`scene_reference` turns a loaded :class:`rig.scene_spec.Scene` into a
-:class:`rig.mc_reference.MonteCarloReference` for :func:`estimation.model_correction.estimate_with_reference`:
+:func:`scene_reference` turns a loaded :class:`rig.files.scene_spec.Scene` into a
+:class:`rig.estimate.reference.mc_reference.MonteCarloReference` for :func:`estimation.model_correction.estimate_with_reference`:
 
 - shape: the mesh as read (mm, world frame, before ``max_edge_mm`` subdivision, which only adds coplanar faces)
   as a :class:`simulators.mc.Mesh`; it must be closed (watertight) to bound a medium;
@@ -18,8 +18,8 @@
   sampled with the scene's ``window_px``.
 
 Frame. The renderer reads a lat-long map in its native convention (+z up, phi from +x towards +y). The scene
-gives the map's orientation as the matrix M of :attr:`rig.scene_spec.EnvironmentSpec.rotation` (native -> world,
-the one the estimator uses through :func:`rig.scene_spec.environment_directions`). Instead of resampling the
+gives the map's orientation as the matrix M of :attr:`rig.files.scene_spec.EnvironmentSpec.rotation` (native -> world,
+the one the estimator uses through :func:`rig.files.scene_spec.environment_directions`). Instead of resampling the
 map, the whole scene (mesh, camera, lights, patch centres) is rotated into the map's frame by M^T, which is exact
 and leaves every projection unchanged. A clockwise azimuth makes M a reflection; then the map's columns are
 reversed (j -> W - 1 - j maps pixel centres onto pixel centres) and the remaining rotation is proper.
@@ -71,7 +71,7 @@ def reference_frame(scene: Any) -> ReferenceFrame:
 
 def _rotate_camera(cam: Any, rot: Array) -> Any:
     """The same camera in the render frame: R' = R rot^T, C' = rot C (projections of rotated points unchanged)."""
-    from .scene_spec import DistortedCamera
+    from rig.files.scene_spec import DistortedCamera
 
     pin = cam.pinhole if isinstance(cam, DistortedCamera) else cam
     r_new = np.asarray(pin.R) @ rot.T
@@ -108,11 +108,11 @@ def _lights(scene: Any, frame: ReferenceFrame, center_mm: Array, size_mm: float)
 
 
 def check_reference_scene(scene: Any) -> Any:
-    """Refuse what the Monte Carlo reference cannot render (:class:`rig.scene_spec.SceneFileError` naming the
+    """Refuse what the Monte Carlo reference cannot render (:class:`rig.files.scene_spec.SceneFileError` naming the
     key); return the :class:`simulators.mc.Mesh` of the scene's surface (world frame)."""
     from simulators.mc import Mesh
 
-    from .scene_spec import SceneFileError
+    from rig.files.scene_spec import SceneFileError
 
     file = str(scene.path)
     mesh = scene.render_mesh_data if scene.render_mesh_data is not None else scene.mesh_data
@@ -131,13 +131,13 @@ def check_reference_scene(scene: Any) -> Any:
 
 
 def scene_reference(scene: Any, patches: Patches, valid_px: NDArray[np.bool_], *, spp: int) -> tuple[Any, dict[str, Any]]:
-    """A :class:`rig.mc_reference.MonteCarloReference` of the scene (module docstring) and a JSON-able
+    """A :class:`rig.estimate.reference.mc_reference.MonteCarloReference` of the scene (module docstring) and a JSON-able
     description of what it renders (frame, lights, approximations)."""
     import trimesh
     from simulators.mc import Mesh
 
-    from .mc_reference import MonteCarloReference
-    from .scene_spec import DistortedCamera, SceneFileError
+    from rig.estimate.reference.mc_reference import MonteCarloReference
+    from rig.files.scene_spec import DistortedCamera, SceneFileError
 
     check_reference_scene(scene)
     frame = reference_frame(scene)

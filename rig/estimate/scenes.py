@@ -1,9 +1,9 @@
 """Scene files, the estimate: :func:`estimate_scene` runs :func:`estimation.single_image.estimate_single_image`
-(or the Monte-Carlo-reference-corrected form, :mod:`rig.scene_reference`) on a scene read by
-:func:`rig.scene_file.load_scene`, and :func:`run_cli` implements ``rig estimate single-image SCENE``
+(or the Monte-Carlo-reference-corrected form, :mod:`rig.estimate.reference.scene_reference`) on a scene read by
+:func:`rig.files.scene_file.load_scene`, and :func:`run_cli` implements ``rig estimate single-image SCENE``
 (docs/scene-file.md).
 
-From image to observations the project's own helpers are reused (``rig.estimate``): each visible patch is found by
+From image to observations the project's own helpers are reused (``rig.estimate.sessions``): each visible patch is found by
 ray casting through the one ray engine (estimation.rays) and its centre sampled from the image by
 ``sample_at_points`` (mean over a ``window_px`` square, bilinear between window centres).
 """
@@ -24,11 +24,11 @@ from numpy.typing import NDArray
 
 from drivers.atomic import atomic_write
 
-from .provenance import jsonable
-from .scene_file import load_scene
-from .scene_spec import (METHODS, MODELS, REFERENCE_MODEL, RESULT_FORMAT, Array, Scene, SceneFileError,
+from rig.files.provenance import jsonable
+from rig.files.scene_file import load_scene
+from rig.files.scene_spec import (METHODS, MODELS, REFERENCE_MODEL, RESULT_FORMAT, Array, Scene, SceneFileError,
                          environment_directions, environment_grid_shape, patches_error, resolve_patches)
-from .session import software_version
+from rig.files.session import software_version
 
 
 __all__ = ["estimate_scene", "format_table", "run_cli"]
@@ -106,7 +106,7 @@ def _scene_patches(scene: Scene, budget: Any, cos_min: float, shadows: bool | st
     resolve_patches), the pixel map of the full mesh, and the stage times (added to ``stage``)."""
     from estimation.single_image import decimate_mesh, patches_from_decimated, patches_from_mesh
 
-    from .pixel_map import pixel_faces
+    from rig.estimate.pixel_map import pixel_faces
 
     mesh, cam, est = scene.mesh_data, scene.camera.model, scene.estimation
     if budget != est.patches:     # the --patches flag: validated like the file's key
@@ -219,7 +219,7 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
 
     ``method`` overrides the scene's ``[estimation].method``, ``model`` its ``[material].model``, and the
     ``reference_*`` arguments its ``[estimation].reference_*`` keys (used by ``model = "mc-table+reference"``:
-    the Monte Carlo table fit corrected by Monte Carlo renders of the scene, :mod:`rig.scene_reference`). A failed
+    the Monte Carlo table fit corrected by Monte Carlo renders of the scene, :mod:`rig.estimate.reference.scene_reference`). A failed
     estimate returns ``success: false`` with the reason in ``message`` (never raises for that); input errors were
     raised by :func:`load_scene`, or are raised here as :class:`SceneFileError` when only the reference cannot
     handle them (e.g. point lights through a non-convex refracting mesh). ``shadows`` ("auto", True/"on",
@@ -231,7 +231,7 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
     from estimation.single_image import SingleImageResult, estimate_single_image
     from estimation.single_image.decimation import PATCH_MIN_PIXELS, gather_patch_pixels
 
-    from .pixel_map import sample_at_points
+    from rig.estimate.pixel_map import sample_at_points
 
     t0 = time.perf_counter()
     budget = scene.estimation.patches if patches is None else patches
@@ -324,7 +324,7 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
     if model_name == REFERENCE_MODEL:
         from estimation.model_correction import estimate_with_reference
 
-        from .scene_reference import scene_reference
+        from rig.estimate.reference.scene_reference import scene_reference
 
         valid_px = np.all(valid, axis=2)
         ref, ref_info = scene_reference(scene, patches, valid_px, spp=spp)  # SceneFileError before any fit

@@ -2,7 +2,7 @@
 
 Used by ``rig capture``, ``rig resume`` and ``rig devices`` (docs/capture-and-resume.md). A device whose URL is
 ``sim`` (or every device, with ``simulate=True``) gets its simulator started on a real transport by
-:func:`rig.factory.start_simulators`; the drivers then talk to it over the wire as to hardware.
+:func:`rig.acquire.factory.start_simulators`; the drivers then talk to it over the wire as to hardware.
 """
 from __future__ import annotations
 
@@ -22,19 +22,20 @@ import numpy as np
 
 from drivers.errors import LimitError, RigError
 
-from .config import RigConfig, parse_config
-from .factory import ROLES, SimulatedRig, open_devices, skip_exposure_waits, start_simulators, uses_simulators
-from .geometry import RigGeometry, geometry_to_dict, rig_geometry
-from .plan import CaptureRequest, Step, budget, build_plan, steps_from_dicts
-from .runner import Devices, RunControl, RunResult, run_plan
-from .session import Session, SessionError, software_version, validate_session_name
+from rig.config import RigConfig, parse_config
+from rig.acquire.factory import (ROLES, SimulatedRig, open_devices, skip_exposure_waits, start_simulators,
+                                 uses_simulators)
+from rig.acquire.geometry import RigGeometry, geometry_to_dict, rig_geometry
+from rig.acquire.plan import CaptureRequest, Step, budget, build_plan, steps_from_dicts
+from rig.acquire.runner import Devices, RunControl, RunResult, run_plan
+from rig.files.session import Session, SessionError, software_version, validate_session_name
 
 
 
 
 def config_from_snapshot(snapshot: dict[str, Any], file: str) -> RigConfig:
     """Re-validate a manifest's config snapshot (``RigConfig.to_dict()``); errors name ``file`` and the field."""
-    from . import schema
+    import rig.config.schema as schema
 
     data = {k: v for k, v in snapshot.items() if k != "name"}
     data["rig"] = {"name": snapshot.get("name")}
@@ -106,7 +107,7 @@ def open_rig(config: RigConfig, *, sim_world: Any | None = None) -> Iterator[Rig
             if sim_world is not None:
                 _render_scene_in(sim_world, config, sim)
         elif sim_world is not None:
-            raise ValueError("sim_world needs a simulated rig (device URLs 'sim'; see rig.capture.simulated)")
+            raise ValueError("sim_world needs a simulated rig (device URLs 'sim'; see rig.acquire.capture.simulated)")
         devices = open_devices(config, geo, sim)
         stack.callback(devices.close)
         if sim_world is not None:
@@ -131,7 +132,7 @@ def calibration_record(path: str | os.PathLike[str], config: RigConfig | None = 
     """The manifest's ``calibration`` field for the calibration file at ``path``: absolute ``file``, ``rig``,
     ``revision``, ``sha256`` of its bytes. The file is validated (``CalibrationError`` naming the file and field)
     and must belong to ``config``'s rig."""
-    from .calibration.store import CalibrationError, load_calibration
+    from rig.files.calibration_store import CalibrationError, load_calibration
 
     p = Path(path).resolve()
     cal = load_calibration(p)
@@ -163,7 +164,7 @@ class Outcome:
 
 
 def runner_options(cfg: RigConfig) -> dict[str, Any]:
-    """:func:`rig.runner.run_plan` options from the config's ``[sphere]`` watchdog and ``[runner]`` table."""
+    """:func:`rig.acquire.runner.run_plan` options from the config's ``[sphere]`` watchdog and ``[runner]`` table."""
     r = cfg.runner
     return {"watchdog_s": cfg.sphere.watchdog_s or None, "retries": r.retries, "busy_timeout_s": r.busy_timeout_s,
             "on_led_fault": r.on_led_fault, "on_over_temperature": r.on_over_temperature,
@@ -191,7 +192,7 @@ def capture(config: RigConfig, request: CaptureRequest, *, sessions_dir: str | P
 
     Refuses before touching a device if the name is invalid or taken, the calibration file is invalid or of
     another rig, or the plan has problems (current over the limit, a watchdog shorter than an exposure...:
-    :func:`rig.plan.budget`)."""
+    :func:`rig.acquire.plan.budget`)."""
     say = say or (lambda m: None)
     name = validate_session_name(name or default_session_name())
     if (Path(sessions_dir) / name).exists():
@@ -207,7 +208,7 @@ def capture(config: RigConfig, request: CaptureRequest, *, sessions_dir: str | P
         ids = rig.identities()
         truth = rig.sim.truth if rig.sim is not None and "camera" in rig.sim.urls else None
         session = Session.create(sessions_dir, name, config=config.to_dict(), devices=ids,
-                                 plan=[s.to_dict() for s in steps], geometry=geometry_to_dict(rig.geometry),
+                                 plan=[s.to_dict() for s in steps], geometry=geometry_to_dict(rig.acquire.geometry),
                                  truth=truth, request=request.resolved(config).to_dict(), calibration=cal_record)
         if cal_record is not None:
             say(f"calibration {cal_record['file']} (revision {cal_record['revision']})")
@@ -215,7 +216,7 @@ def capture(config: RigConfig, request: CaptureRequest, *, sessions_dir: str | P
         progress = progress_factory(steps) if progress_factory else None
         with session.lock():
             try:
-                result = _run(session, steps, rig, rig.geometry.led_directions, control=control,
+                result = _run(session, steps, rig, rig.acquire.geometry.led_directions, control=control,
                               progress=progress, say=say, run_options=run_options)
             finally:
                 if progress is not None and hasattr(progress, "close"):
@@ -231,7 +232,7 @@ def resume(root: str | Path, *, simulate: bool = False, control: RunControl | No
     The plan, config and LED geometry come from the session's manifest, so the resumed frames are taken exactly
     as planned. A session already complete is left alone. ``accept_faults`` (e.g. ``["led_fault"]``): sphere
     faults the operator has checked; they are journalled but no longer pause the run."""
-    from .runner import FAULT_NAMES
+    from rig.acquire.runner import FAULT_NAMES
 
     say = say or (lambda m: None)
     mask = 0
@@ -268,7 +269,7 @@ def resume(root: str | Path, *, simulate: bool = False, control: RunControl | No
             for n in notes:
                 say(f"note: device changed since the session started: {n}")
             dirs = np.asarray(m["geometry"]["led_directions"], float) if m.get("geometry") else \
-                rig.geometry.led_directions
+                rig.acquire.geometry.led_directions
             progress = progress_factory(steps) if progress_factory else None
             try:
                 result = _run(session, steps, rig, dirs, control=control, progress=progress, say=say,
@@ -309,7 +310,7 @@ def _health(role: str, dev: Any) -> dict[str, Any]:
 def device_report(config: RigConfig) -> list[dict[str, Any]]:
     """Open, identify and read the health of each device on its own: one unreachable device does not keep the
     others from being checked. One row per role: ``ok``, ``identity``, ``health`` or ``error``, ``seconds``."""
-    from .factory import open_device
+    from rig.acquire.factory import open_device
 
     geo = rig_geometry(config)
     rows: list[dict[str, Any]] = []

@@ -5,11 +5,11 @@ numbers are strict (a string or a boolean is never taken for a number) and finit
 first problem into one :class:`~drivers.errors.ConfigError` line naming the file, the dotted field, what was
 expected and the value found. Checks across fields (degenerate camera poses, exposures against the trigger's
 range, driver-specific rules, the plan's energy and thermal budget) live in :mod:`rig.config` and
-:mod:`rig.config_check`, which raise the same error. :func:`json_schema` is the JSON Schema editors use
+:mod:`rig.acquire.config_check`, which raise the same error. :func:`json_schema` is the JSON Schema editors use
 (``rig/data/rig-config.schema.json``; ``rig config --schema``).
 
 The ``[calibration]`` table has its own models, built from the dataclasses of
-:mod:`rig.calibration.settings` by :func:`model_from_dataclass` (one description of each key, not two).
+:mod:`rig.config.calibration_settings` by :func:`model_from_dataclass` (one description of each key, not two).
 """
 from __future__ import annotations
 
@@ -205,7 +205,7 @@ class Runner(_Table):
 
 
 class RigFile(_Table):
-    """A whole rig config file. ``[calibration]`` is checked by :mod:`rig.calibration.settings`."""
+    """A whole rig config file. ``[calibration]`` is checked by :mod:`rig.config.calibration_settings`."""
 
     rig: RigSection
     sphere: Sphere

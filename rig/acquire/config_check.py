@@ -1,9 +1,9 @@
 """``rig config --check``: everything about a rig config that can be known without a device.
 
-:func:`check_config` loads the file (the schema of :mod:`rig.schema`, the checks across keys of
+:func:`check_config` loads the file (the schema of :mod:`rig.config.schema`, the checks across keys of
 :mod:`rig.config`, ``[calibration]``), then builds the plan of every estimator and refuses the config if that
 plan has a problem: a pattern over the current limit, a watchdog that does not cover an exposure, a predicted
-over-temperature (``rig.plan.budget``). It returns the resolved config (every default filled in).
+over-temperature (``rig.acquire.plan.budget``). It returns the resolved config (every default filled in).
 :func:`json_schema` is the JSON Schema of the file for editors (``rig/data/rig-config.schema.json``).
 """
 from __future__ import annotations
@@ -26,10 +26,10 @@ def check_config(path: str | Path | None) -> dict[str, Any]:
 
     Returns ``{"file", "ok": True, "rig", "config", "calibration", "budget"}`` with the resolved values;
     raises :class:`ConfigError` naming the file and the field of the first problem."""
-    from .calibration.settings import load_settings
-    from .config import load_config
-    from .geometry import rig_geometry
-    from .plan import CaptureRequest, budget, build_plan
+    from rig.config.calibration_settings import load_settings
+    from rig.config import load_config
+    from rig.acquire.geometry import rig_geometry
+    from rig.acquire.plan import CaptureRequest, budget, build_plan
 
     cfg = load_config(path)
     settings = load_settings(cfg)
@@ -44,8 +44,8 @@ def check_config(path: str | Path | None) -> dict[str, Any]:
 
 def json_schema() -> dict[str, Any]:
     """JSON Schema (draft 2020-12) of a rig config file, ``[calibration]`` included."""
-    from .calibration.settings import _model
-    from .schema import RigFile
+    from rig.config.calibration_settings import _model
+    from rig.config.schema import RigFile
 
     out = RigFile.model_json_schema()
     cal = _model().model_json_schema()

@@ -34,8 +34,8 @@ import numpy.typing as npt
 from drivers.atomic import atomic_write_bytes
 from drivers.errors import RigError
 
-from ..provenance import json_default
-from .linearity import linearize
+from rig.files.provenance import json_default
+from rig.files.linearity import linearize
 
 FORMAT = "sssrig-calibration"
 SCHEMA_VERSION = 1
@@ -173,7 +173,7 @@ def _validate(file: str, doc: Any) -> dict[str, Any]:
     if ver != SCHEMA_VERSION:
         raise CalibrationError(file, "schema_version", f"{SCHEMA_VERSION} (this software's calibration schema)",
                                ver)
-    from ..schema import did_you_mean
+    from rig.config.schema import did_you_mean
 
     for key in doc:
         if key not in _TOP_KEYS:
@@ -232,7 +232,7 @@ def write_section(path: str | os.PathLike[str], name: str, *, result: Mapping[st
     The section is validated before anything is written (a bad result never reaches the file)."""
     if name not in STEP_SECTIONS:
         raise ValueError(f"unknown calibration section {name!r}; expected one of {', '.join(STEP_SECTIONS)}")
-    from ..session import now_iso
+    from rig.files.session import now_iso
 
     p = Path(path)
     doc = read_document(p) if p.exists() else new_document(rig_name)
@@ -285,7 +285,7 @@ class Calibration:
 
     # -- camera -------------------------------------------------------------------------------------------
     def intrinsics(self) -> Any:
-        from .common import Intrinsics
+        from rig.files.camera_intrinsics import Intrinsics
 
         r = self.result("intrinsics")
         return Intrinsics(int(r["width_px"]), int(r["height_px"]), float(r["fx_px"]), float(r["fy_px"]),

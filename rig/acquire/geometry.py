@@ -10,7 +10,7 @@ import numpy.typing as npt
 from estimation.camera import PinholeCamera
 
 if TYPE_CHECKING:
-    from .config import RigConfig
+    from rig.config import RigConfig
 
 
 def _icosahedron() -> tuple[np.ndarray, np.ndarray]:
@@ -74,7 +74,7 @@ def rig_geometry(config: "RigConfig") -> RigGeometry:
     pos, dirs = led_layout(s.geodesic_frequency, s.radius_mm, s.min_elevation_deg)
     cam = PinholeCamera.looking_at(width_px=c.width_px, height_px=c.height_px, fx_px=c.fx_px,
                                    position_mm=c.position_mm, target_mm=c.look_at_mm, up=c.up)
-    from .patterns import nearest_led
+    from rig.acquire.patterns import nearest_led
     key = nearest_led(dirs, config.estimation.key_light_direction)
     targets = {t.name: t.xyz_mm for t in config.targets}
     targets["key_led"] = tuple(float(v) for v in pos[key])

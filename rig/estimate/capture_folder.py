@@ -6,9 +6,9 @@ frame's pattern, polarization and exposure, the LED calibration (or an ideal-gra
 for the grounded diffusion estimator) and a seed calibration. The format is documented key by key in
 ``docs/capture-folder.md``; this module validates it (:func:`load_capture`: every error names the file, the key
 and what was expected, as ``rig.config`` does), runs :func:`estimation.gradients.compute_maps` and the diffusion
-estimators (:func:`estimate_capture`) and writes the maps with :func:`rig.maps_io.write_maps`.
+estimators (:func:`estimate_capture`) and writes the maps with :func:`rig.files.maps_io.write_maps`.
 
-The session path (``rig.estimate.run_gradients``) and this one call the same estimators with the same conventions:
+The session path (``rig.estimate.sessions.run_gradients``) and this one call the same estimators with the same conventions:
 frames ambient-subtracted and divided by their exposure, ``albedo_scale`` from radiometry
 (:func:`estimation.gradients.albedo_scale_from_radiometry`) or from a Lambertian reference
 (:func:`estimation.gradients.albedo_scale_from_lambertian`), the LED near field modelled at the sphere, the
@@ -39,9 +39,9 @@ from drivers.errors import ConfigError, RigError
 from estimation.camera import OrthographicCamera, PinholeCamera, look_at_rotation
 from estimation.gradients import PATTERNS, POLARIZATIONS, LedRig
 
-from .imageio import ImageFileError, read_image
-from .provenance import jsonable, sha256_file
-from .session import software_version
+from rig.files.imageio import ImageFileError, read_image
+from rig.files.provenance import jsonable, sha256_file
+from rig.files.session import software_version
 
 __all__ = ["CAPTURE_FILE", "CAPTURE_FORMAT", "CAPTURE_FORMAT_VERSION", "CaptureError", "FrameEntry",
            "LedCalibration", "OrthographicCamera", "ReferenceTarget", "Radiometry", "SphereGeometry", "SeedSpec",
@@ -70,7 +70,7 @@ class _Table:
         self.file, self.data, self.prefix = file, data, prefix
         unknown = sorted(set(data) - set(allowed))
         if unknown:
-            from .schema import did_you_mean
+            from rig.config.schema import did_you_mean
             raise ConfigError(file, self.key(unknown[0]), "one of the documented keys"
                               + did_you_mean(unknown[0], allowed) + ": " + ", ".join(allowed), unknown[0])
 
@@ -290,8 +290,8 @@ class Capture:
     seed: SeedSpec | None
     specular: bool
     notes: tuple[str, ...] = ()
-    relief: Any = None          # rig.folder_diffusion.ReliefGeometry ([object] shape = "relief") or None
-    regions: Any = None         # rig.folder_regions.RegionLabels ([object] regions) or None
+    relief: Any = None          # rig.estimate.folder_diffusion.ReliefGeometry ([object] shape = "relief") or None
+    regions: Any = None         # rig.estimate.folder_regions.RegionLabels ([object] regions) or None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -650,13 +650,13 @@ def _read_object(file: str, folder: Path, data: dict[str, Any], shape: tuple[int
             if t.has(k):
                 raise t.err(k, "nothing unless shape = \"sphere\"", k)
     if shape_kind == "relief":
-        from .folder_diffusion import read_relief_geometry
+        from rig.estimate.folder_diffusion import read_relief_geometry
         relief = read_relief_geometry(t, folder, shape, camera)
     else:
         for k in ("normals_file", "height_file"):
             if t.has(k):
                 raise t.err(k, "nothing unless shape = \"relief\"", k)
-    from .folder_regions import read_regions
+    from rig.estimate.folder_regions import read_regions
     return mask, mask_file, geo, relief, read_regions(t, folder, shape)
 
 
@@ -797,7 +797,7 @@ def _strip_gradients(prov: Mapping[str, Any]) -> dict[str, Any]:
 
 def _check_reference(cap: Capture, reference: Mapping[str, Any]) -> None:
     """--reference needs a known sphere (it renders it); refuse clearly otherwise. Ideal gradients are rendered with
-    a dense synthetic LED set (:func:`rig.folder_diffusion.ideal_reference_leds`)."""
+    a dense synthetic LED set (:func:`rig.estimate.folder_diffusion.ideal_reference_leds`)."""
     if cap.geometry is None:
         raise ConfigError(str(cap.file), "object.shape", "shape = \"sphere\" with center_mm and radius_mm: "
                           "--reference renders the known sphere by Monte Carlo, and corrects only a sphere's "
@@ -811,14 +811,14 @@ def _check_reference(cap: Capture, reference: Mapping[str, Any]) -> None:
 def _reference_summary(cap: Capture, reference: Mapping[str, Any], leds: LedRig | None, scale: Any, eta: float,
                        n_ref: NDArray[np.float64], normals: Any, obj: Any, maps: Any, folder_maps: Any,
                        tile_rows: int) -> dict[str, Any]:
-    """The reference-corrected sphere summary (:func:`rig.folder_reference.reference_corrected_sphere`)."""
-    from .folder_reference import (REFERENCE_ITERATIONS, REFERENCE_SEED, REFERENCE_SPP,
+    """The reference-corrected sphere summary (:func:`rig.estimate.reference.folder_reference.reference_corrected_sphere`)."""
+    from rig.estimate.reference.folder_reference import (REFERENCE_ITERATIONS, REFERENCE_SEED, REFERENCE_SPP,
                                    reference_corrected_sphere)
 
     assert cap.geometry is not None
     led_pos, led_int = cap.leds.positions_mm, cap.leds.intensity
     if cap.leds.ideal:      # continuous gradients: the renderer sees LEDs as a distant map anyway
-        from .folder_diffusion import ideal_reference_leds
+        from rig.estimate.folder_diffusion import ideal_reference_leds
         led_pos, led_int = ideal_reference_leds()
         leds = LedRig.from_positions(led_pos, led_int)
     assert leds is not None and led_pos is not None and led_int is not None
@@ -850,7 +850,7 @@ def estimate_capture(capture: Capture, out_dir: str | Path, fmt: str = "exr", ti
                      reference: Mapping[str, Any] | None = None, relief_window_px: int | None = None
                      ) -> dict[str, Any]:
     """Gradient maps (Ma et al. 2007), the grounded diffusion estimate (with a sphere) and the seed's D (with a
-    seed calibration) for a loaded capture; writes the maps into ``out_dir`` (:func:`rig.maps_io.write_maps`) and
+    seed calibration) for a loaded capture; writes the maps into ``out_dir`` (:func:`rig.files.maps_io.write_maps`) and
     returns a JSON-ready summary (per-channel medians, the diffusion summary with intervals, files, notes).
 
     ``fmt``: "exr" or "tiff"; ``tile_rows``: rows per processing tile of ``compute_maps`` (None: its default);
@@ -859,17 +859,17 @@ def estimate_capture(capture: Capture, out_dir: str | Path, fmt: str = "exr", ti
     (method "sphere"); "dipole-better" and "mc-table" use the first-order method "small_blur" with that model's
     half-space R_d and <r^2>. The summary and sidecar record the model and its bias against the Monte Carlo table
     at the fitted parameters (``diffusion.model_bias``). ``maps``: names of the map files to write (None: all;
-    :func:`rig.maps_io.select_maps`), ``half``: normals and albedos as EXR HALF (:data:`rig.maps_io.HALF_OK`);
+    :func:`rig.files.maps_io.select_maps`), ``half``: normals and albedos as EXR HALF (:data:`rig.files.maps_io.HALF_OK`);
     the sidecar lists what was written and how the left-out maps are derived.
 
     ``reference``: None, or {"spp": N, "iterations": K, "seed": S} (missing keys: the defaults of
-    :mod:`rig.folder_reference`): with a sphere and an LED calibration, the sphere summary is also corrected by
-    Monte Carlo renders of the same capture (:func:`rig.folder_reference.reference_corrected_sphere`) and reported
+    :mod:`rig.estimate.reference.folder_reference`): with a sphere and an LED calibration, the sphere summary is also corrected by
+    Monte Carlo renders of the same capture (:func:`rig.estimate.reference.folder_reference.reference_corrected_sphere`) and reported
     as ``diffusion_reference_corrected`` beside the uncorrected ``diffusion``; the per-pixel maps stay uncorrected.
 
     Without a sphere: with ``[object] shape = "relief"`` (a normals or height file) or with specular normals
     (parallel-polarized frames), the relief-blur fit per window of ``relief_window_px`` pixels (default
-    :data:`rig.folder_diffusion.RELIEF_WINDOW_PX`) and its region summary (:func:`rig.folder_diffusion.
+    :data:`rig.estimate.folder_diffusion.RELIEF_WINDOW_PX`) and its region summary (:func:`rig.estimate.folder_diffusion.
     relief_estimate`) are the ``diffusion`` summary; otherwise D, sigma_s', sigma_a are unknown.
     """
     from estimation.diffusion import check_grounded_model
@@ -899,7 +899,7 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
     from estimation.diffusion import compare_estimates, diffusion_seed, estimate_sphere, sphere_geometry
     from estimation.gradients import compute_maps
 
-    from .maps_io import write_maps
+    from rig.files.maps_io import write_maps
 
     t0 = time.perf_counter()
     cap = capture
@@ -947,8 +947,8 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
         raise CaptureError(f"{cap.file}: gradient maps failed: {exc}") from exc
     t_maps = time.perf_counter() - t0
     notes = list(cap.notes)
-    from .folder_diffusion import apply_dark_channels, relief_branch, write_albedo_apparent
-    from .folder_regions import channel_medians, grounded_summary, region_summaries
+    from rig.estimate.folder_diffusion import apply_dark_channels, relief_branch, write_albedo_apparent
+    from rig.estimate.folder_regions import channel_medians, grounded_summary, region_summaries
     apply_dark_channels(cap, maps, obj, exposure, notes)
     known = ~maps.unknown
     seed_est = None
@@ -1016,7 +1016,7 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
     }
     if ref_summary is not None:
         summary["diffusion_reference_corrected"] = ref_summary
-    if cap.regions is not None:     # rig.folder_regions: the same summaries restricted to each labelled region
+    if cap.regions is not None:     # rig.estimate.folder_regions: the same summaries restricted to each labelled region
         summary["regions"] = region_summaries(cap.regions, maps, alb_app, diffusion=diffusion, relief_fit=relief_fit,
                                               radius_mm=radius, eta=rad.eta, unknown_reason=diff_summary.get("reason"))
     prov: dict[str, Any] = {
@@ -1097,7 +1097,7 @@ def format_summary(s: Mapping[str, Any]) -> str:
                          f"{_fmt(r['sigma_s_prime_per_mm']['value'][c]):>15}"
                          f"{_fmt(r['sigma_a_per_mm']['value'][c]):>12}{_fmt(r['kappa_albedo'][c], '.3f'):>11}"
                          f"{_fmt(r['kappa_blur'][c], '.3g'):>11}{_fmt(r['uncorrected']['D_mm'][c]):>11}")
-    from .folder_regions import format_regions
+    from rig.estimate.folder_regions import format_regions
     lines += format_regions(s.get("regions"))
     if s.get("seed"):
         lines.append("seed D [mm] (relative, k calibrated elsewhere): "
@@ -1127,7 +1127,7 @@ def run_cli(args: Any) -> int:
     cap = load_capture(folder)
     if reference is not None:
         _check_reference(cap, reference)      # before the maps: a missing sphere is a usage error, not a failure
-    from .maps_io import select_maps
+    from rig.files.maps_io import select_maps
 
     try:
         sel = select_maps(getattr(args, "maps", None))

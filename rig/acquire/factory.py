@@ -25,9 +25,9 @@ from drivers.trigger.esper import open_esper_trigger
 from drivers.trigger.hid_box import HidTrigger, open_hid_trigger
 from drivers.trigger.serial_release import SerialRelease, open_serial_release
 
-from .config import CameraConfig, RigConfig, TriggerConfig
-from .geometry import RigGeometry, rig_geometry
-from .runner import Devices
+from rig.config import CameraConfig, RigConfig, TriggerConfig
+from rig.acquire.geometry import RigGeometry, rig_geometry
+from rig.acquire.runner import Devices
 
 __all__ = ["ROLES", "SimulatedRig", "SimulatedReleaseCable", "open_camera", "open_device", "open_devices", "open_trigger",
            "rig_geometry", "skip_exposure_waits", "start_simulators"]  # rig_geometry: re-exported for hil/ and the CLI
@@ -141,7 +141,7 @@ def start_simulators(config: RigConfig, geometry: RigGeometry, workdir: Path | N
                              config.sphere.led_intensity, drop, sensor, seed=sc.seed, render_mode=sc.render,
                              mc=MCSettings(spp=sc.mc_spp, seed=sc.seed))
     if sc.render == "mc":
-        from .feedback import numba_notice
+        from rig.feedback import numba_notice
         numba_notice()
     renderer = ("the Jensen dipole (fast renderer)" if sc.render == "fast" else
                 f"Monte Carlo light transport ({sc.mc_spp} paths per pixel)")

@@ -1,0 +1,3 @@
+"""Acquisition: rig geometry and patterns, capture plans, the runner, device factory and simulators, capture and
+resume.
+"""
