@@ -28,7 +28,9 @@ from typing import Any
 
 import numpy as np
 
-from .diffusion import _derived, invert_sphere_scalar
+from .diffusion import invert_sphere_scalar
+from .diffusion.maps import _derived
+
 
 __all__ = ["widen_sphere_summary", "SHORTENING_BIAS_MARGIN"]
 

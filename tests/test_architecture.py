@@ -5,7 +5,7 @@
   modules and sub-packages (rig's rooms: config, files, acquire, calibration, estimate, then report, demo, cli).
 - No import cycle between any two modules of the four packages (imports inside functions count; imports under
   ``if TYPE_CHECKING:`` do not: they never run).
-- No module over 800 lines (the packages, tests, benchmarks, hil), except the ones listed below, which may only shrink (each is waiting for its split).
+- No module over 800 lines (the packages, tests, benchmarks, hil).
 """
 from __future__ import annotations
 
@@ -13,13 +13,10 @@ import os
 from pathlib import Path
 
 import grimp
-import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("drivers", "estimation", "simulators", "rig")
 MAX_LINES = 800
-#: modules over MAX_LINES still to be split (issue 20), with their length when listed: they may only shrink
-LONG_MODULES = {"rig/estimate/capture_folder.py": 1144, "estimation/diffusion.py": 1361, "estimation/gradients.py": 1205}
 
 
 def test_the_import_contracts_hold() -> None:
@@ -96,13 +93,6 @@ def test_no_module_over_800_lines() -> None:
         for path in sorted((ROOT / pkg).rglob("*.py")):
             rel = path.relative_to(ROOT).as_posix()
             n = len(path.read_text().splitlines())
-            if n > LONG_MODULES.get(rel, MAX_LINES):
+            if n > MAX_LINES:
                 too_long[rel] = n
-    assert not too_long, f"modules over {MAX_LINES} lines (or grown while waiting for their split): {too_long}"
-
-
-@pytest.mark.parametrize("rel", sorted(LONG_MODULES))
-def test_listed_long_modules_still_exist(rel: str) -> None:
-    """A listed module that was split or removed must leave the list (so the list cannot hide a new one)."""
-    path = ROOT / rel
-    assert path.is_file() and len(path.read_text().splitlines()) > MAX_LINES, f"{rel}: take it off LONG_MODULES"
+    assert not too_long, f"modules over {MAX_LINES} lines (split them by job): {too_long}"

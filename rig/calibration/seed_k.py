@@ -103,7 +103,7 @@ def compute(ctx: StepContext, cap: Captured) -> StepOutput:
         raise ValueError(f"{cap.session.root}: k could not be calibrated (pixels per channel {cal.n_pixels.tolist()})")
     m = region[..., None] & ~maps.unknown
     alb = [float(np.median(maps.albedo[..., c][m[..., c]])) for c in range(3)]
-    from estimation.diffusion import _shortening
+    from estimation.diffusion.maps import _shortening
 
     sh = _shortening(maps, normals)
     short = [float(np.median(sh[..., c][m[..., c]])) for c in range(3)]

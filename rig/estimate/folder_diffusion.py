@@ -207,7 +207,7 @@ def albedo_apparent(maps: Any, normals: Any, eta: float, leds: Any, reference_no
     channel's diffuse normal; v the maps' view directions.
     """
     from estimation.fresnel import fresnel_transmittance
-    from estimation.gradients import _full_transmitted_over_plain
+    from estimation.gradients.response import _full_transmitted_over_plain
 
     ratio = _full_transmitted_over_plain(eta, leds, reference_normal)
     H = maps.albedo.shape[0]

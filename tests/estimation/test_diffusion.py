@@ -529,7 +529,7 @@ def test_tiles_and_memory_maps_do_not_change_the_diffusion_maps(marble10, tmp_pa
 def _first_order_maps(model: str, ssp: np.ndarray, sa: np.ndarray, rho: float = 10.0, eta: float = 1.3, n: int = 24):
     """Gradient maps of a sphere patch synthesized with ``model``'s small-blur forward: albedo = R_d_model(alpha'),
     shortening S = 1 - <r^2>_model / (2 rho^2), per channel; v = (tau1/tau0) S n."""
-    from estimation.diffusion import _G_model, _model_rd
+    from estimation.diffusion.models import _G_model, _model_rd
     from estimation.gradients import GradientMasks, GradientMaps, tau_ratio
 
     g = np.linspace(-0.5, 0.5, n)

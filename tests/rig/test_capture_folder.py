@@ -675,7 +675,7 @@ def test_reference_units_fast_render_of_the_folder_sphere_is_a_fixed_point(tmp_p
     np.testing.assert_allclose(r["reference"]["value_per_radiance_per_s"], SIM_GAIN / (SIM_WHITE - SIM_BLACK),
                                rtol=1e-12)
     leds = cap.leds.rig(cap.gradient_patterns)
-    from rig.estimate.capture_folder import _reference_normal
+    from rig.estimate.capture_folder.estimate import _reference_normal
     np.testing.assert_allclose(implied_value_per_radiance_per_s(s["albedo_scale"], leds, ETA,
                                                                 _reference_normal(cap.camera)),
                                SIM_GAIN / (SIM_WHITE - SIM_BLACK), rtol=1e-12)
