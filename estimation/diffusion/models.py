@@ -45,7 +45,7 @@ def check_grounded_model(model: str, method: str, eta: float | None = None) -> s
         raise ValueError(f"method='sphere' (exact Jensen sphere integrals) supports model='dipole-jensen' only; "
                          f"use method='small_blur' for model={model!r}")
     if model == "mc-table" and eta is not None:
-        from .mc_table import default_table
+        from ..mc_table import default_table
 
         default_table().check_eta(float(eta))
     return model
@@ -64,7 +64,7 @@ def _model_tables(eta: float, fdr: str, model: str, n: int = 4097) -> tuple[NDAr
     s_g = np.linspace(0.0, _S_MAX, n)
     a_g = 1.0 - s_g * s_g / 3.0
     if model == "mc-table":
-        from .mc_table import default_table, second_moment_factor
+        from ..mc_table import default_table, second_moment_factor
 
         tab = default_table()
         lo, hi = tab.alpha_prime_range
@@ -74,7 +74,7 @@ def _model_tables(eta: float, fdr: str, model: str, n: int = 4097) -> tuple[NDAr
         r_lo, r_hi = float(tab.total_reflectance(lo, eta)), float(tab.total_reflectance(hi, eta))
         s_min = float(np.sqrt(3.0 * (1.0 - hi)))
     else:
-        from .dipole import second_moment_mm2, total_diffuse_reflectance
+        from ..dipole import second_moment_mm2, total_diffuse_reflectance
 
         af = np.clip(a_f, 0.0, 1.0)
         r_f = total_diffuse_reflectance(af, 1.0 - af, eta, model=model, fdr=fdr)
@@ -101,7 +101,7 @@ def _s_lookup(s: Array, table: NDArray[np.float32]) -> Array:
 def _alpha_from_rd(rd: float, eta: float, fdr: str, model: str) -> tuple[float, bool]:
     """(alpha', censored) of the half-space R_d of ``model`` (scalar, exact)."""
     if model == "mc-table":
-        from .mc_table import default_table
+        from ..mc_table import default_table
 
         tab = default_table()
         lo, hi = (float(tab.total_reflectance(a, eta)) for a in tab.alpha_prime_range)
@@ -114,10 +114,10 @@ def _alpha_from_rd(rd: float, eta: float, fdr: str, model: str) -> tuple[float, 
 def _model_rd(alpha: float, eta: float, fdr: str, model: str) -> float:
     """Half-space R_d of ``model`` at alpha' (scalar)."""
     if model == "mc-table":
-        from .mc_table import default_table
+        from ..mc_table import default_table
 
         return float(default_table().total_reflectance(alpha, eta, out_of_range="clip"))
-    from .dipole import total_diffuse_reflectance
+    from ..dipole import total_diffuse_reflectance
 
     return float(total_diffuse_reflectance(alpha, 1.0 - alpha, eta, model=model, fdr=fdr))
 
@@ -125,12 +125,12 @@ def _model_rd(alpha: float, eta: float, fdr: str, model: str) -> float:
 def _G_model(alpha: float, eta: float, fdr: str, model: str) -> float:
     """<r^2> sigma_t'^2 of ``model``'s half-space profile at alpha' (scalar)."""
     if model == "mc-table":
-        from .mc_table import second_moment_factor
+        from ..mc_table import second_moment_factor
 
         return float(second_moment_factor(alpha, eta, out_of_range="clip")[0])
     if model == "dipole-jensen":
         return float(second_moment_factor_G(alpha, float(boundary_A(eta, fdr=fdr))))
-    from .dipole import second_moment_mm2
+    from ..dipole import second_moment_mm2
 
     return float(second_moment_mm2(alpha, 1.0 - alpha, eta, model=model, fdr=fdr))
 
@@ -141,8 +141,8 @@ def grounded_model_bias(sigma_s_prime_per_mm: ArrayLike, sigma_a_per_mm: ArrayLi
     gradients estimator uses: :func:`estimation.single_image.model_bias` (R_d, profile and radiance ratios,
     table-equivalent parameters) plus ``r2_ratio`` = <r^2>_model / <r^2>_table of the normalized half-space
     profile. Channels with non-finite or non-positive parameters are None."""
-    from .mc_table import second_moment_mm2 as mc_r2
-    from .single_image import model_bias
+    from ..mc_table import second_moment_mm2 as mc_r2
+    from ..single_image import model_bias
 
     ssp = np.asarray(sigma_s_prime_per_mm, dtype=np.float64).reshape(-1)
     sa = np.asarray(sigma_a_per_mm, dtype=np.float64).reshape(-1)

@@ -180,7 +180,7 @@ def summarize(dmaps: DiffusionMaps, region: ArrayLike | None = None, *, confiden
 def sphere_geometry(camera: Any, center_mm: ArrayLike, radius_mm: float) -> tuple[Array, Array, NDArray[np.bool_]]:
     """(normals (H, W, 3) NaN off the sphere, view directions (H, W, 3) towards the camera, hit mask (H, W))
     for a :class:`estimation.camera.PinholeCamera` and a sphere in the rig frame."""
-    from .camera import intersect_sphere
+    from ..camera import intersect_sphere
 
     origins, dirs = camera.pixel_rays()
     pts, hit = intersect_sphere(origins, dirs, center_mm, radius_mm)
