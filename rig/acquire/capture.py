@@ -208,7 +208,7 @@ def capture(config: RigConfig, request: CaptureRequest, *, sessions_dir: str | P
         ids = rig.identities()
         truth = rig.sim.truth if rig.sim is not None and "camera" in rig.sim.urls else None
         session = Session.create(sessions_dir, name, config=config.to_dict(), devices=ids,
-                                 plan=[s.to_dict() for s in steps], geometry=geometry_to_dict(rig.acquire.geometry),
+                                 plan=[s.to_dict() for s in steps], geometry=geometry_to_dict(rig.geometry),
                                  truth=truth, request=request.resolved(config).to_dict(), calibration=cal_record)
         if cal_record is not None:
             say(f"calibration {cal_record['file']} (revision {cal_record['revision']})")
@@ -216,7 +216,7 @@ def capture(config: RigConfig, request: CaptureRequest, *, sessions_dir: str | P
         progress = progress_factory(steps) if progress_factory else None
         with session.lock():
             try:
-                result = _run(session, steps, rig, rig.acquire.geometry.led_directions, control=control,
+                result = _run(session, steps, rig, rig.geometry.led_directions, control=control,
                               progress=progress, say=say, run_options=run_options)
             finally:
                 if progress is not None and hasattr(progress, "close"):
@@ -269,7 +269,7 @@ def resume(root: str | Path, *, simulate: bool = False, control: RunControl | No
             for n in notes:
                 say(f"note: device changed since the session started: {n}")
             dirs = np.asarray(m["geometry"]["led_directions"], float) if m.get("geometry") else \
-                rig.acquire.geometry.led_directions
+                rig.geometry.led_directions
             progress = progress_factory(steps) if progress_factory else None
             try:
                 result = _run(session, steps, rig, dirs, control=control, progress=progress, say=say,
