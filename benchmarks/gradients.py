@@ -117,7 +117,14 @@ def synthesize(folder: Path, H: int, W: int, parallel: bool, tile_rows: int, lut
         n = np.stack([u, -np.sqrt(np.clip(1.0 - r2, 0.0, None)), w], -1)
         normals[r0:r1] = np.where(hit[..., None], n, np.nan)
         nn = n.reshape(-1, 3)
-        coef = lut.affine(nn)  # (M, P, 3, 4)
+        # the rig's response per pattern, in chunks of normals: lut.affine of a whole 256-row tile of a 24 MP
+        # frame is a (1.5 M, P, 3, 4) float64 array (~0.6 GB per bilinear corner)
+        resp = {p: np.empty((nn.shape[0], 3)) for p in pats}
+        for s0 in range(0, nn.shape[0], 65536):
+            coef = lut.affine(nn[s0:s0 + 65536])  # (m, P, 3, 4)
+            for p, ip in pats.items():
+                c = coef[:, ip]
+                resp[p][s0:s0 + 65536] = c[..., 0] + S * np.einsum("mck,mk->mc", c[..., 1:], nn[s0:s0 + 65536])
         tex = 1.0 + 0.1 * np.sin(40 * u)[..., None] * np.cos(30 * w)[..., None] * np.array([1.0, 0.8, 0.6])
         base = (VALUE_SCALE * R * tex * fresnel_transmittance(ETA, np.clip(-n[..., 1], 0, 1))[..., None]
                 * hit[..., None])
@@ -128,9 +135,7 @@ def synthesize(folder: Path, H: int, W: int, parallel: bool, tile_rows: int, lut
             if pat == "ambient":
                 clean = np.zeros_like(base)
             else:
-                c = coef[:, pats[pat]]  # (M, 3, 4)
-                e = c[..., 0] + S * np.einsum("mck,mk->mc", c[..., 1:], nn)
-                clean = base * e.reshape(base.shape)
+                clean = base * resp[pat].reshape(base.shape)
             if name.endswith("_parallel") and pat != "ambient":
                 val = 1.0 if pat == "full" else 0.5 * (1 + refl[..., "xyz".index(pat):"xyz".index(pat) + 1])
                 clean = clean + spec * val
@@ -140,6 +145,37 @@ def synthesize(folder: Path, H: int, W: int, parallel: bool, tile_rows: int, lut
     for a in out.values():
         a.flush()
     normals.flush()
+
+
+FRAME_CACHE = ROOT / "benchmarks" / "out" / "gradients_frames"
+
+
+def frame_cache_key(H: int, W: int, parallel: bool, tile_rows: int, seed: int = 1) -> str:
+    """Content key of a synthetic frame set: its size, options and the source of :func:`synthesize` and of the
+    constants it uses (a change to any of them makes a new key)."""
+    import hashlib
+    import inspect
+    text = json.dumps([H, W, parallel, tile_rows, seed, ETA, RADIUS_MM, VALUE_SCALE, LED_R_MM,
+                       [m.tolist() for m in MARBLE]])
+    text += inspect.getsource(synthesize) + inspect.getsource(leds)
+    return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
+def cached_frames(H: int, W: int, parallel: bool, tile_rows: int) -> tuple[Path, float | None]:
+    """The folder of the synthetic frames under ``benchmarks/out/gradients_frames/<key>/`` (git-ignored),
+    synthesized on the first call (then renamed into place, so an interrupted synthesis is never reused).
+    Returns (folder, synthesis seconds or None when it was cached)."""
+    folder = FRAME_CACHE / f"{W}x{H}{'-parallel' if parallel else ''}-{frame_cache_key(H, W, parallel, tile_rows)}"
+    if (folder / "normals.npy").exists():
+        return folder, None
+    tmp = folder.with_name(folder.name + ".partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    t0 = time.perf_counter()
+    synthesize(tmp, H, W, parallel, tile_rows, build_response_lut(leds(), eta=ETA, surface_radius_mm=RADIUS_MM))
+    dt = time.perf_counter() - t0
+    tmp.rename(folder)
+    return folder, dt
 
 
 # ------------------------------------------------------------------------------------------------ workers
@@ -342,6 +378,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--relief", action="store_true",
                     help="also run the relief branch of rig estimate gradients (no sphere: per-window relief fit, "
                          "its window maps and the apparent albedo written as EXR) and report its memory (issue 16)")
+    ap.add_argument("--no-cache", action="store_true",
+                    help="synthesize the frames into the temporary folder instead of reusing (or filling) the cache "
+                         "benchmarks/out/gradients_frames/ (24 MP: ~1.8 GB, keyed by size, options and source)")
+    ap.add_argument("--synthesize-only", action="store_true", help="fill the frame cache and stop")
     ap.add_argument("--worker", choices=["floor", "pipeline", "trace", "write", "ram", "relief"],
                     help=argparse.SUPPRESS)
     ap.add_argument("--dir", help=argparse.SUPPRESS)
@@ -358,13 +398,23 @@ def main(argv: list[str] | None = None) -> int:
     folder = Path(tempfile.mkdtemp(prefix="sssrig-gradbench-", dir=args.tmp))
     try:
         t0 = time.perf_counter()
-        synthesize(folder, H, W, args.parallel, args.tile_rows,
-                   build_response_lut(leds(), eta=ETA, surface_radius_mm=RADIUS_MM))
+        if args.no_cache:
+            synthesize(folder, H, W, args.parallel, args.tile_rows,
+                       build_response_lut(leds(), eta=ETA, surface_radius_mm=RADIUS_MM))
+            synth = f"synthesis {time.perf_counter() - t0:.0f} s"
+        else:   # the frames from the cache, linked into the work folder (the workers write their maps there)
+            src, dt = cached_frames(H, W, args.parallel, args.tile_rows)
+            for n in frame_names(args.parallel) + ["normals"]:
+                (folder / f"{n}.npy").symlink_to(src / f"{n}.npy")
+            synth = (f"synthesis {dt:.0f} s" if dt is not None else "frames cached") + f" in {src}"
+        if args.synthesize_only:
+            print(synth)
+            return 0
         n_frames = len(frame_names(args.parallel))
         frame_set = n_frames * H * W * 3 * 4
         print(f"# gradient-map pipeline benchmark: {W} x {H} px ({H * W / 1e6:.1f} MP), {n_frames} frames "
-              f"(frame set {frame_set / 2**30:.2f} GiB float32), tile_rows {args.tile_rows}; synthesis "
-              f"{time.perf_counter() - t0:.0f} s, files in {folder}\n")
+              f"(frame set {frame_set / 2**30:.2f} GiB float32), tile_rows {args.tile_rows}; {synth}; "
+              f"work files in {folder}\n")
         floor1 = spawn("floor", folder, args)
         pipe = spawn("pipeline", folder, args)
         floor2 = spawn("floor", folder, args)
