@@ -130,21 +130,23 @@ def search_l_prime(spectra: Array, data: Array, alphas: Array, pixel_mm: float, 
     block = max(1, int(block_bytes) // per_pair)
     cost = np.full((n, nl), np.nan)
     arg = uk[None, :] * l_grid[:, None]                                       # (nl, K): the products k l'
-    m_cache: dict[int, Array] = {}
 
     def evaluate(todo: NDArray[np.bool_]) -> None:
-        """cost[j, l] for every (j, l) with ``todo`` set and cost not yet known, in blocks of pairs."""
-        nonlocal m_cache
+        """cost[j, l] for every (j, l) with ``todo`` set and cost not yet known, in blocks of pairs. The inverse
+        real FFT is pruned to the rows of the window: the inverse along the rows (complex), then only the window's
+        h rows through the inverse real FFT along the columns."""
         jobs, ls = np.nonzero(todo & np.isnan(cost))
         for s0 in range(0, jobs.size, block):
             jb, lb = jobs[s0:s0 + block], ls[s0:s0 + block]
-            m_cache = {int(j): m_cache[int(j)] if int(j) in m_cache else np.interp(arg, xs, ms[j])  # (nl, K)
-                       for j in np.unique(jb)}
-            Mb = np.stack([m_cache[int(j)][l] for j, l in zip(jb, lb)])[:, inv]   # (P, H2, W2r)
-            pred = sfft.irfft2(Mb[:, None] * spectra[jw[jb]], s=(H2, W2), axes=(-2, -1), workers=workers)
-            pred = pred[..., ph:ph + h, pw:pw + w]
+            Mb = np.stack([np.interp(arg[l], xs, ms[j]) for j, l in zip(jb, lb)])[:, inv]   # (P, H2, W2r)
+            Z = spectra[jw[jb]]                                                # (P, 2, H2, W2r), a copy
+            Z *= Mb[:, None]
+            Z = sfft.ifft(Z, axis=-2, overwrite_x=True, workers=workers)[..., ph:ph + h, :]
+            pred = sfft.irfft(Z, n=W2, axis=-1, workers=workers)[..., pw:pw + w]
             pred -= pred.mean(axis=(-2, -1), keepdims=True)
-            r = win * (data[jb] - pred)
+            r = data[jb]
+            r -= pred
+            r *= win
             cost[jb, lb] = np.einsum("pcij,pcij->p", r, r)
 
     rows = np.arange(n)
