@@ -284,7 +284,8 @@ def run_pipeline(folder: Path, parallel: bool, tile_rows: int, trace: bool, ram:
             "status": list(s.status)}
 
 
-def run_relief(folder: Path, parallel: bool, tile_rows: int, workers: int | None = None) -> dict[str, Any]:
+def run_relief(folder: Path, parallel: bool, tile_rows: int, workers: int | None = None, trace: bool = True
+               ) -> dict[str, Any]:
     """The relief branch of ``rig estimate gradients`` (a capture folder without a sphere: issue 16) on the same
     frames, traced: compute_maps (memory-mapped maps), the per-window relief fit of the diffuse normals against
     the known normals with its full-resolution window maps written as EXR
@@ -302,24 +303,31 @@ def run_relief(folder: Path, parallel: bool, tile_rows: int, workers: int | None
     out.mkdir()
     cam = OrthographicCamera.looking_at(width_px=W, height_px=H, pixel_size_mm=RADIUS_MM / (0.55 * W),
                                         direction=(0.0, 1.0, 0.0))
-    tracemalloc.start()
-    t0 = time.perf_counter()
+    if trace:
+        tracemalloc.start()
+    t0, c0 = time.perf_counter(), time.process_time()
     rig = leds()
     lut = build_response_lut(rig, eta=ETA, surface_radius_mm=RADIUS_MM)
     maps = compute_maps(frames, albedo_scale=1.0 / VALUE_SCALE, lut=lut, eta=ETA, geometry_normals=normals,
                         tile_rows=tile_rows, out_dir=out / "maps", workers=workers, consistency=False)
-    t_maps = time.perf_counter()
-    summary, files = relief_estimate(maps, normals, "benchmark normals", cam, None, out, "exr", RELIEF_WINDOW_PX)
-    t_relief = time.perf_counter()
+    t_maps, c_maps = time.perf_counter(), time.process_time()
+    summary, files, fit = relief_estimate(maps, normals, "benchmark normals", cam, None, out, "exr",
+                                          RELIEF_WINDOW_PX)
+    t_relief, c_relief = time.perf_counter(), time.process_time()
     alb = albedo_apparent(maps, normals, ETA, rig, np.array([0.0, -1.0, 0.0]), rows=tile_rows)
     alb[np.asarray(maps.unknown)] = np.nan
     write_exr(out / "albedo_apparent.exr", alb)
     del alb
-    t_end = time.perf_counter()
-    peak = tracemalloc.get_traced_memory()[1]
-    tracemalloc.stop()
+    t_end, c_end = time.perf_counter(), time.process_time()
+    peak = tracemalloc.get_traced_memory()[1] if trace else None
+    if trace:
+        tracemalloc.stop()
     return {"seconds": t_end - t0, "seconds_maps": t_maps - t0, "seconds_relief": t_relief - t_maps,
-            "seconds_albedo_apparent": t_end - t_relief, "tracemalloc_peak_bytes": peak,
+            "seconds_albedo_apparent": t_end - t_relief, "cpu_seconds": c_end - c0,
+            "cpu_seconds_maps": c_maps - c0, "cpu_seconds_relief": c_relief - c_maps,
+            "cpu_seconds_albedo_apparent": c_end - c_relief, "tracemalloc_peak_bytes": peak,
+            "fitted_window_channels": fit.provenance.get("fitted_window_channels") if fit is not None else 0,
+            "loadavg_end": list(os.getloadavg()),
             "windows": summary["windows"], "window_status": summary["window_status"], "files": len(files) + 1}
 
 
@@ -360,6 +368,30 @@ def spawn(kind: str, folder: Path, args: argparse.Namespace, **extra: Any) -> di
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
+def print_relief(relief: dict[str, Any], mpx: float, floor_ref: float, frame_set: int) -> bool:
+    """Print the relief branch's lines (time, CPU, throughput beside the read floor, memory); True when its peak
+    process memory is within 2 frame sets."""
+    r_tm, r_anon = relief["tracemalloc_peak_bytes"], relief["anon_peak_bytes"] - relief["anon_baseline_bytes"]
+    relief_ok = max(r_tm, r_anon) <= 2 * frame_set
+    print(f"\nrelief branch (no sphere; {relief['windows'][0]} x {relief['windows'][1]} windows of "
+          f"64 px, status per channel {relief['window_status']}; {relief['files']} EXR maps): "
+          f"{relief['seconds']:.1f} s (maps {relief['seconds_maps']:.1f}, relief fit + window maps "
+          f"{relief['seconds_relief']:.1f}, apparent albedo {relief['seconds_albedo_apparent']:.1f}); CPU "
+          f"{relief['cpu_seconds']:.1f} s (relief fit + window maps {relief['cpu_seconds_relief']:.1f} s for "
+          f"{relief['fitted_window_channels']} fitted window-channels: "
+          f"{relief['cpu_seconds_relief'] / max(relief['fitted_window_channels'], 1):.4f} s each); load "
+          f"average at its end {relief['loadavg_end']}")
+    r_mps = mpx / relief["seconds"]
+    print(f"relief branch throughput {r_mps:.3f} MP/s = {r_mps / floor_ref:.4f} x the read floor "
+          f"(the 1/3 line is the sphere pipeline's; for reference)")
+    print("| memory (relief branch) | GiB | / frame set |\n|---|---|---|")
+    print(f"| tracemalloc peak | {r_tm / 2**30:.3f} | {r_tm / frame_set:.3f} |")
+    print(f"| peak RssAnon above baseline (sampled) | {r_anon / 2**30:.3f} | {r_anon / frame_set:.3f} |")
+    print(f"relief branch peak process memory / frame set = {max(r_tm, r_anon) / frame_set:.3f} (target <= 2: "
+          f"{'met' if relief_ok else 'NOT met'})")
+    return relief_ok
+
+
 # ------------------------------------------------------------------------------------------------------ main
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -378,6 +410,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--relief", action="store_true",
                     help="also run the relief branch of rig estimate gradients (no sphere: per-window relief fit, "
                          "its window maps and the apparent albedo written as EXR) and report its memory (issue 16)")
+    ap.add_argument("--relief-only", action="store_true",
+                    help="only the read floor and the relief branch (skips the sphere pipeline's four workers)")
     ap.add_argument("--no-cache", action="store_true",
                     help="synthesize the frames into the temporary folder instead of reusing (or filling) the cache "
                          "benchmarks/out/gradients_frames/ (24 MP: ~1.8 GB, keyed by size, options and source)")
@@ -416,6 +450,21 @@ def main(argv: list[str] | None = None) -> int:
               f"(frame set {frame_set / 2**30:.2f} GiB float32), tile_rows {args.tile_rows}; {synth}; "
               f"work files in {folder}\n")
         floor1 = spawn("floor", folder, args)
+        if args.relief_only:
+            relief = spawn("relief", folder, args)
+            floor2 = spawn("floor", folder, args)
+            mpx = H * W / 1e6
+            floor_mps = [mpx / floor1["seconds"], mpx / floor2["seconds"]]
+            print(f"read floor {floor1['seconds']:.2f} / {floor2['seconds']:.2f} s ({max(floor_mps):.2f} MP/s, the "
+                  "faster as the reference; the sphere pipeline's workers skipped: --relief-only)")
+            ok = print_relief(relief, mpx, max(floor_mps), frame_set)
+            if args.json:
+                args.json.write_text(json.dumps({"width_px": W, "height_px": H, "megapixels": mpx,
+                                                 "frames": n_frames, "frame_set_bytes": frame_set,
+                                                 "floor_read_mps": floor_mps, "targets_met": {"relief_memory": ok},
+                                                 "runs": {"floor1": floor1, "floor2": floor2, "relief": relief}},
+                                                indent=1, default=float))
+            return 0
         pipe = spawn("pipeline", folder, args)
         floor2 = spawn("floor", folder, args)
         write = spawn("write", folder, args, write_bytes=pipe["bytes_written"])
@@ -468,19 +517,7 @@ def main(argv: list[str] | None = None) -> int:
     mem_ok = max(tm, anon) <= 2 * frame_set
     print(f"\npeak process memory / frame set = {max(tm, anon) / frame_set:.3f} (target <= 2: "
           f"{'met' if mem_ok else 'NOT met'})")
-    relief_ok = None
-    if relief is not None:
-        r_tm, r_anon = relief["tracemalloc_peak_bytes"], relief["anon_peak_bytes"] - relief["anon_baseline_bytes"]
-        relief_ok = max(r_tm, r_anon) <= 2 * frame_set
-        print(f"\nrelief branch (no sphere; {relief['windows'][0]} x {relief['windows'][1]} windows of "
-              f"64 px, status per channel {relief['window_status']}; {relief['files']} EXR maps): "
-              f"{relief['seconds']:.1f} s (maps {relief['seconds_maps']:.1f}, relief fit + window maps "
-              f"{relief['seconds_relief']:.1f}, apparent albedo {relief['seconds_albedo_apparent']:.1f})")
-        print("| memory (relief branch) | GiB | / frame set |\n|---|---|---|")
-        print(f"| tracemalloc peak | {r_tm / 2**30:.3f} | {r_tm / frame_set:.3f} |")
-        print(f"| peak RssAnon above baseline (sampled) | {r_anon / 2**30:.3f} | {r_anon / frame_set:.3f} |")
-        print(f"relief branch peak process memory / frame set = {max(r_tm, r_anon) / frame_set:.3f} (target <= 2: "
-              f"{'met' if relief_ok else 'NOT met'})")
+    relief_ok = print_relief(relief, mpx, floor_ref, frame_set) if relief is not None else None
     print(f"\nresult check: known pixels (red) {pipe['known_fraction']:.3f}, D_mm {np.round(pipe['D_mm'], 5).tolist()}"
           f" (rel. err. vs marble {np.round(pipe['D_rel_err'], 4).tolist()}, status {pipe['status']})")
     result = {"width_px": W, "height_px": H, "megapixels": mpx, "frames": n_frames, "frame_set_bytes": frame_set,
