@@ -25,6 +25,7 @@ References: Ma et al. 2007 sec. 5; Jensen et al. 2001 (R^(k)); ``docs/gradients.
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 from scipy import fft as sfft
 from scipy import stats
@@ -93,6 +94,45 @@ def true_spectra(t: Array, comps: NDArray[np.int64], workers: int = 1) -> Array:
     return sfft.rfft2(padded, axes=(-2, -1), workers=workers)
 
 
+@njit(cache=True)
+def _modulated_spectra(spectra: Array, wins: NDArray[np.int64], Mu: Array, inv: NDArray[np.int64]) -> Array:
+    """Z[p, c] = M_p(|k|) x spectra[wins[p], c] with M_p given at the distinct |k| (``Mu`` (P, K), ``inv`` the
+    index of each half-spectrum cell's |k|): one pass, no gathered copies."""
+    P = wins.shape[0]
+    _, C, H2, W2r = spectra.shape
+    out = np.empty((P, C, H2, W2r), dtype=np.complex128)
+    for p in range(P):
+        w = wins[p]
+        for c in range(C):
+            for i in range(H2):
+                for j in range(W2r):
+                    out[p, c, i, j] = spectra[w, c, i, j] * Mu[p, inv[i, j]]
+    return out
+
+
+@njit(cache=True)
+def _window_cost(pred: Array, pw: int, data: Array, jobs: NDArray[np.int64], win: Array) -> Array:
+    """sum_c sum_px (win (data[jobs[p], c] - (q - mean q)))^2 with q = pred[p, c, :, pw:pw + w]."""
+    P, C, h, _ = pred.shape
+    w = data.shape[3]
+    out = np.zeros(P)
+    for p in range(P):
+        jd = jobs[p]
+        tot = 0.0
+        for c in range(C):
+            mean = 0.0
+            for i in range(h):
+                for j in range(w):
+                    mean += pred[p, c, i, pw + j]
+            mean /= h * w
+            for i in range(h):
+                for j in range(w):
+                    r = win[i, j] * (data[jd, c, i, j] - (pred[p, c, i, pw + j] - mean))
+                    tot += r * r
+        out[p] = tot
+    return out
+
+
 def search_l_prime(spectra: Array, data: Array, alphas: Array, pixel_mm: float, eta: float, l_grid: Array,
                    margin_px: int, fdr: str, confidence: float, model: str = "dipole-jensen", *,
                    job_window: NDArray[np.int64] | None = None, coarse_step: int = 3, block_bytes: int = 16 << 20,
@@ -123,7 +163,7 @@ def search_l_prime(spectra: Array, data: Array, alphas: Array, pixel_mm: float, 
     kx = 2 * np.pi * np.fft.rfftfreq(W2, d=pixel_mm)
     kk = np.sqrt(ky[:, None] ** 2 + kx[None, :] ** 2)
     uk, inv = np.unique(kk, return_inverse=True)
-    inv = inv.reshape(kk.shape)
+    inv = inv.reshape(kk.shape).astype(np.int64)
     xs, ms = mtf_tables(alphas, eta, fdr, model)
     win = window_weight(h, w, margin_px)
     per_pair = 2 * H2 * W2 * 8 * 4
@@ -138,16 +178,11 @@ def search_l_prime(spectra: Array, data: Array, alphas: Array, pixel_mm: float, 
         jobs, ls = np.nonzero(todo & np.isnan(cost))
         for s0 in range(0, jobs.size, block):
             jb, lb = jobs[s0:s0 + block], ls[s0:s0 + block]
-            Mb = np.stack([np.interp(arg[l], xs, ms[j]) for j, l in zip(jb, lb)])[:, inv]   # (P, H2, W2r)
-            Z = spectra[jw[jb]]                                                # (P, 2, H2, W2r), a copy
-            Z *= Mb[:, None]
+            Mu = np.stack([np.interp(arg[l], xs, ms[j]) for j, l in zip(jb, lb)])   # (P, K)
+            Z = _modulated_spectra(spectra, jw[jb], Mu, inv)                           # (P, 2, H2, W2r)
             Z = sfft.ifft(Z, axis=-2, overwrite_x=True, workers=workers)[..., ph:ph + h, :]
-            pred = sfft.irfft(Z, n=W2, axis=-1, workers=workers)[..., pw:pw + w]
-            pred -= pred.mean(axis=(-2, -1), keepdims=True)
-            r = data[jb]
-            r -= pred
-            r *= win
-            cost[jb, lb] = np.einsum("pcij,pcij->p", r, r)
+            pred = sfft.irfft(Z, n=W2, axis=-1, workers=workers)                   # (P, 2, h, W2)
+            cost[jb, lb] = _window_cost(pred, pw, data, jb, win)
 
     rows = np.arange(n)
     grid = np.arange(nl)
