@@ -327,6 +327,8 @@ def run_relief(folder: Path, parallel: bool, tile_rows: int, workers: int | None
             "cpu_seconds_maps": c_maps - c0, "cpu_seconds_relief": c_relief - c_maps,
             "cpu_seconds_albedo_apparent": c_end - c_relief, "tracemalloc_peak_bytes": peak,
             "fitted_window_channels": fit.provenance.get("fitted_window_channels") if fit is not None else 0,
+            "seconds_fit": fit.provenance.get("seconds") if fit is not None else 0.0,
+            "cpu_seconds_fit": fit.provenance.get("cpu_seconds") if fit is not None else 0.0,
             "loadavg_end": list(os.getloadavg()),
             "windows": summary["windows"], "window_status": summary["window_status"], "files": len(files) + 1}
 
@@ -376,11 +378,12 @@ def print_relief(relief: dict[str, Any], mpx: float, floor_ref: float, frame_set
     print(f"\nrelief branch (no sphere; {relief['windows'][0]} x {relief['windows'][1]} windows of "
           f"64 px, status per channel {relief['window_status']}; {relief['files']} EXR maps): "
           f"{relief['seconds']:.1f} s (maps {relief['seconds_maps']:.1f}, relief fit + window maps "
-          f"{relief['seconds_relief']:.1f}, apparent albedo {relief['seconds_albedo_apparent']:.1f}); CPU "
-          f"{relief['cpu_seconds']:.1f} s (relief fit + window maps {relief['cpu_seconds_relief']:.1f} s for "
-          f"{relief['fitted_window_channels']} fitted window-channels: "
-          f"{relief['cpu_seconds_relief'] / max(relief['fitted_window_channels'], 1):.4f} s each); load "
-          f"average at its end {relief['loadavg_end']}")
+          f"{relief['seconds_relief']:.1f} of which the fit {relief.get('seconds_fit', float('nan')):.1f}, "
+          f"apparent albedo {relief['seconds_albedo_apparent']:.1f}); CPU {relief['cpu_seconds']:.1f} s (relief "
+          f"fit + window maps {relief['cpu_seconds_relief']:.1f} s, the fit "
+          f"{relief.get('cpu_seconds_fit', float('nan')):.1f} s for {relief['fitted_window_channels']} fitted "
+          f"window-channels: {relief.get('cpu_seconds_fit', float('nan')) / max(relief['fitted_window_channels'], 1):.4f}"
+          f" s each); load average at its end {relief['loadavg_end']}")
     r_mps = mpx / relief["seconds"]
     print(f"relief branch throughput {r_mps:.3f} MP/s = {r_mps / floor_ref:.4f} x the read floor "
           f"(the 1/3 line is the sphere pipeline's; for reference)")

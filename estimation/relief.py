@@ -42,6 +42,7 @@ sec. 9; ``shared/reference/science.md`` sec. 1, 3-4.
 """
 from __future__ import annotations
 
+import time
 import warnings
 from dataclasses import dataclass, field
 from typing import Any
@@ -342,6 +343,7 @@ def fit_relief_windows(diffuse_normals: ArrayLike, true_normals: ArrayLike, albe
     """
     from .relief_windows import alpha_from_rd_many, search_l_prime, true_spectra
 
+    t_wall, t_cpu = time.perf_counter(), time.process_time()
     def lazy(a: Any) -> Any:
         return a if hasattr(a, "__getitem__") and hasattr(a, "shape") else np.asarray(a)
 
@@ -466,6 +468,7 @@ def fit_relief_windows(diffuse_normals: ArrayLike, true_normals: ArrayLike, albe
             "albedo_rel_uncertainty": albedo_rel_uncertainty, "weak_ratio": weak_ratio,
             "min_relief_snr": min_relief_snr, "min_relief_rad": min_relief_rad, "eta": eta, "fdr": fdr,
             "exit_normalization": c_exit, "fitted_window_channels": n_jobs, "search_step": int(search_step),
+            "seconds": time.perf_counter() - t_wall, "cpu_seconds": time.process_time() - t_cpu,
             "method": "relief blur, profile likelihood per window (estimation.relief), batched per band of rows "
                       "(estimation.relief_windows)"}
     return ReliefFit(win_px, stride, float(pixel_mm), origins, vals, ints, status, rms, noise, dnoise,
