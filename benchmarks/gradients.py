@@ -32,7 +32,11 @@ throughput >= 1/3 of the read floor's; peak memory <= 2 frame sets.
 Run: ``python benchmarks/gradients.py [--quick] [--json out.json]`` (24 MP: several minutes and ~8 GB of
 temporary files, removed afterwards unless ``--keep``; ``--quick``: 1.2 MP, ~25 s). ``--megapixels``,
 ``--tile-rows``, ``--parallel``, ``--tmp`` (folder for the temporary files) adjust the run; ``--ram`` adds a
-diagnostic run with the maps in RAM (the compute without map I/O).
+diagnostic run with the maps in RAM (the compute without map I/O). ``--relief`` adds the relief branch of
+``rig estimate gradients`` (no sphere: the per-window relief fit and its maps, issue 16), ``--relief-only`` runs only
+the read floor and that branch. The synthetic frames are cached under ``benchmarks/out/gradients_frames/`` (keyed by
+size, options and the source of :func:`synthesize`; 24 MP: ~1.8 GB, made once in ~5 min); ``--no-cache`` makes them
+in the temporary folder, ``--synthesize-only`` fills the cache and stops.
 """
 from __future__ import annotations
 
