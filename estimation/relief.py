@@ -49,7 +49,6 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy import stats
 
 from .dipole import hankel_transform, reduced_albedo_from_total_reflectance
 
