@@ -32,7 +32,11 @@ throughput >= 1/3 of the read floor's; peak memory <= 2 frame sets.
 Run: ``python benchmarks/gradients.py [--quick] [--json out.json]`` (24 MP: several minutes and ~8 GB of
 temporary files, removed afterwards unless ``--keep``; ``--quick``: 1.2 MP, ~25 s). ``--megapixels``,
 ``--tile-rows``, ``--parallel``, ``--tmp`` (folder for the temporary files) adjust the run; ``--ram`` adds a
-diagnostic run with the maps in RAM (the compute without map I/O).
+diagnostic run with the maps in RAM (the compute without map I/O). ``--relief`` adds the relief branch of
+``rig estimate gradients`` (no sphere: the per-window relief fit and its maps, issue 16), ``--relief-only`` runs only
+the read floor and that branch. The synthetic frames are cached under ``benchmarks/out/gradients_frames/`` (keyed by
+size, options and the source of :func:`synthesize`; 24 MP: ~1.8 GB, made once in ~5 min); ``--no-cache`` makes them
+in the temporary folder, ``--synthesize-only`` fills the cache and stops.
 """
 from __future__ import annotations
 
@@ -117,7 +121,14 @@ def synthesize(folder: Path, H: int, W: int, parallel: bool, tile_rows: int, lut
         n = np.stack([u, -np.sqrt(np.clip(1.0 - r2, 0.0, None)), w], -1)
         normals[r0:r1] = np.where(hit[..., None], n, np.nan)
         nn = n.reshape(-1, 3)
-        coef = lut.affine(nn)  # (M, P, 3, 4)
+        # the rig's response per pattern, in chunks of normals: lut.affine of a whole 256-row tile of a 24 MP
+        # frame is a (1.5 M, P, 3, 4) float64 array (~0.6 GB per bilinear corner)
+        resp = {p: np.empty((nn.shape[0], 3)) for p in pats}
+        for s0 in range(0, nn.shape[0], 65536):
+            coef = lut.affine(nn[s0:s0 + 65536])  # (m, P, 3, 4)
+            for p, ip in pats.items():
+                c = coef[:, ip]
+                resp[p][s0:s0 + 65536] = c[..., 0] + S * np.einsum("mck,mk->mc", c[..., 1:], nn[s0:s0 + 65536])
         tex = 1.0 + 0.1 * np.sin(40 * u)[..., None] * np.cos(30 * w)[..., None] * np.array([1.0, 0.8, 0.6])
         base = (VALUE_SCALE * R * tex * fresnel_transmittance(ETA, np.clip(-n[..., 1], 0, 1))[..., None]
                 * hit[..., None])
@@ -128,9 +139,7 @@ def synthesize(folder: Path, H: int, W: int, parallel: bool, tile_rows: int, lut
             if pat == "ambient":
                 clean = np.zeros_like(base)
             else:
-                c = coef[:, pats[pat]]  # (M, 3, 4)
-                e = c[..., 0] + S * np.einsum("mck,mk->mc", c[..., 1:], nn)
-                clean = base * e.reshape(base.shape)
+                clean = base * resp[pat].reshape(base.shape)
             if name.endswith("_parallel") and pat != "ambient":
                 val = 1.0 if pat == "full" else 0.5 * (1 + refl[..., "xyz".index(pat):"xyz".index(pat) + 1])
                 clean = clean + spec * val
@@ -140,6 +149,37 @@ def synthesize(folder: Path, H: int, W: int, parallel: bool, tile_rows: int, lut
     for a in out.values():
         a.flush()
     normals.flush()
+
+
+FRAME_CACHE = ROOT / "benchmarks" / "out" / "gradients_frames"
+
+
+def frame_cache_key(H: int, W: int, parallel: bool, tile_rows: int, seed: int = 1) -> str:
+    """Content key of a synthetic frame set: its size, options and the source of :func:`synthesize` and of the
+    constants it uses (a change to any of them makes a new key)."""
+    import hashlib
+    import inspect
+    text = json.dumps([H, W, parallel, tile_rows, seed, ETA, RADIUS_MM, VALUE_SCALE, LED_R_MM,
+                       [m.tolist() for m in MARBLE]])
+    text += inspect.getsource(synthesize) + inspect.getsource(leds)
+    return hashlib.sha256(text.encode()).hexdigest()[:12]
+
+
+def cached_frames(H: int, W: int, parallel: bool, tile_rows: int) -> tuple[Path, float | None]:
+    """The folder of the synthetic frames under ``benchmarks/out/gradients_frames/<key>/`` (git-ignored),
+    synthesized on the first call (then renamed into place, so an interrupted synthesis is never reused).
+    Returns (folder, synthesis seconds or None when it was cached)."""
+    folder = FRAME_CACHE / f"{W}x{H}{'-parallel' if parallel else ''}-{frame_cache_key(H, W, parallel, tile_rows)}"
+    if (folder / "normals.npy").exists():
+        return folder, None
+    tmp = folder.with_name(folder.name + ".partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    t0 = time.perf_counter()
+    synthesize(tmp, H, W, parallel, tile_rows, build_response_lut(leds(), eta=ETA, surface_radius_mm=RADIUS_MM))
+    dt = time.perf_counter() - t0
+    tmp.rename(folder)
+    return folder, dt
 
 
 # ------------------------------------------------------------------------------------------------ workers
@@ -248,7 +288,8 @@ def run_pipeline(folder: Path, parallel: bool, tile_rows: int, trace: bool, ram:
             "status": list(s.status)}
 
 
-def run_relief(folder: Path, parallel: bool, tile_rows: int, workers: int | None = None) -> dict[str, Any]:
+def run_relief(folder: Path, parallel: bool, tile_rows: int, workers: int | None = None, trace: bool = True
+               ) -> dict[str, Any]:
     """The relief branch of ``rig estimate gradients`` (a capture folder without a sphere: issue 16) on the same
     frames, traced: compute_maps (memory-mapped maps), the per-window relief fit of the diffuse normals against
     the known normals with its full-resolution window maps written as EXR
@@ -266,24 +307,33 @@ def run_relief(folder: Path, parallel: bool, tile_rows: int, workers: int | None
     out.mkdir()
     cam = OrthographicCamera.looking_at(width_px=W, height_px=H, pixel_size_mm=RADIUS_MM / (0.55 * W),
                                         direction=(0.0, 1.0, 0.0))
-    tracemalloc.start()
-    t0 = time.perf_counter()
+    if trace:
+        tracemalloc.start()
+    t0, c0 = time.perf_counter(), time.process_time()
     rig = leds()
     lut = build_response_lut(rig, eta=ETA, surface_radius_mm=RADIUS_MM)
     maps = compute_maps(frames, albedo_scale=1.0 / VALUE_SCALE, lut=lut, eta=ETA, geometry_normals=normals,
                         tile_rows=tile_rows, out_dir=out / "maps", workers=workers, consistency=False)
-    t_maps = time.perf_counter()
-    summary, files = relief_estimate(maps, normals, "benchmark normals", cam, None, out, "exr", RELIEF_WINDOW_PX)
-    t_relief = time.perf_counter()
+    t_maps, c_maps = time.perf_counter(), time.process_time()
+    summary, files, fit = relief_estimate(maps, normals, "benchmark normals", cam, None, out, "exr",
+                                          RELIEF_WINDOW_PX)
+    t_relief, c_relief = time.perf_counter(), time.process_time()
     alb = albedo_apparent(maps, normals, ETA, rig, np.array([0.0, -1.0, 0.0]), rows=tile_rows)
     alb[np.asarray(maps.unknown)] = np.nan
     write_exr(out / "albedo_apparent.exr", alb)
     del alb
-    t_end = time.perf_counter()
-    peak = tracemalloc.get_traced_memory()[1]
-    tracemalloc.stop()
+    t_end, c_end = time.perf_counter(), time.process_time()
+    peak = tracemalloc.get_traced_memory()[1] if trace else None
+    if trace:
+        tracemalloc.stop()
     return {"seconds": t_end - t0, "seconds_maps": t_maps - t0, "seconds_relief": t_relief - t_maps,
-            "seconds_albedo_apparent": t_end - t_relief, "tracemalloc_peak_bytes": peak,
+            "seconds_albedo_apparent": t_end - t_relief, "cpu_seconds": c_end - c0,
+            "cpu_seconds_maps": c_maps - c0, "cpu_seconds_relief": c_relief - c_maps,
+            "cpu_seconds_albedo_apparent": c_end - c_relief, "tracemalloc_peak_bytes": peak,
+            "fitted_window_channels": fit.provenance.get("fitted_window_channels") if fit is not None else 0,
+            "seconds_fit": fit.provenance.get("seconds") if fit is not None else 0.0,
+            "cpu_seconds_fit": fit.provenance.get("cpu_seconds") if fit is not None else 0.0,
+            "loadavg_end": list(os.getloadavg()),
             "windows": summary["windows"], "window_status": summary["window_status"], "files": len(files) + 1}
 
 
@@ -324,6 +374,31 @@ def spawn(kind: str, folder: Path, args: argparse.Namespace, **extra: Any) -> di
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
+def print_relief(relief: dict[str, Any], mpx: float, floor_ref: float, frame_set: int) -> bool:
+    """Print the relief branch's lines (time, CPU, throughput beside the read floor, memory); True when its peak
+    process memory is within 2 frame sets."""
+    r_tm, r_anon = relief["tracemalloc_peak_bytes"], relief["anon_peak_bytes"] - relief["anon_baseline_bytes"]
+    relief_ok = max(r_tm, r_anon) <= 2 * frame_set
+    print(f"\nrelief branch (no sphere; {relief['windows'][0]} x {relief['windows'][1]} windows of "
+          f"64 px, status per channel {relief['window_status']}; {relief['files']} EXR maps): "
+          f"{relief['seconds']:.1f} s (maps {relief['seconds_maps']:.1f}, relief fit + window maps "
+          f"{relief['seconds_relief']:.1f} of which the fit {relief.get('seconds_fit', float('nan')):.1f}, "
+          f"apparent albedo {relief['seconds_albedo_apparent']:.1f}); CPU {relief['cpu_seconds']:.1f} s (relief "
+          f"fit + window maps {relief['cpu_seconds_relief']:.1f} s, the fit "
+          f"{relief.get('cpu_seconds_fit', float('nan')):.1f} s for {relief['fitted_window_channels']} fitted "
+          f"window-channels: {relief.get('cpu_seconds_fit', float('nan')) / max(relief['fitted_window_channels'], 1):.4f}"
+          f" s each); load average at its end {relief['loadavg_end']}")
+    r_mps = mpx / relief["seconds"]
+    print(f"relief branch throughput {r_mps:.3f} MP/s = {r_mps / floor_ref:.4f} x the read floor "
+          f"(the 1/3 line is the sphere pipeline's; for reference)")
+    print("| memory (relief branch) | GiB | / frame set |\n|---|---|---|")
+    print(f"| tracemalloc peak | {r_tm / 2**30:.3f} | {r_tm / frame_set:.3f} |")
+    print(f"| peak RssAnon above baseline (sampled) | {r_anon / 2**30:.3f} | {r_anon / frame_set:.3f} |")
+    print(f"relief branch peak process memory / frame set = {max(r_tm, r_anon) / frame_set:.3f} (target <= 2: "
+          f"{'met' if relief_ok else 'NOT met'})")
+    return relief_ok
+
+
 # ------------------------------------------------------------------------------------------------------ main
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -342,6 +417,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--relief", action="store_true",
                     help="also run the relief branch of rig estimate gradients (no sphere: per-window relief fit, "
                          "its window maps and the apparent albedo written as EXR) and report its memory (issue 16)")
+    ap.add_argument("--relief-only", action="store_true",
+                    help="only the read floor and the relief branch (skips the sphere pipeline's four workers)")
+    ap.add_argument("--no-cache", action="store_true",
+                    help="synthesize the frames into the temporary folder instead of reusing (or filling) the cache "
+                         "benchmarks/out/gradients_frames/ (24 MP: ~1.8 GB, keyed by size, options and source)")
+    ap.add_argument("--synthesize-only", action="store_true", help="fill the frame cache and stop")
     ap.add_argument("--worker", choices=["floor", "pipeline", "trace", "write", "ram", "relief"],
                     help=argparse.SUPPRESS)
     ap.add_argument("--dir", help=argparse.SUPPRESS)
@@ -358,14 +439,39 @@ def main(argv: list[str] | None = None) -> int:
     folder = Path(tempfile.mkdtemp(prefix="sssrig-gradbench-", dir=args.tmp))
     try:
         t0 = time.perf_counter()
-        synthesize(folder, H, W, args.parallel, args.tile_rows,
-                   build_response_lut(leds(), eta=ETA, surface_radius_mm=RADIUS_MM))
+        if args.no_cache:
+            synthesize(folder, H, W, args.parallel, args.tile_rows,
+                       build_response_lut(leds(), eta=ETA, surface_radius_mm=RADIUS_MM))
+            synth = f"synthesis {time.perf_counter() - t0:.0f} s"
+        else:   # the frames from the cache, linked into the work folder (the workers write their maps there)
+            src, dt = cached_frames(H, W, args.parallel, args.tile_rows)
+            for n in frame_names(args.parallel) + ["normals"]:
+                (folder / f"{n}.npy").symlink_to(src / f"{n}.npy")
+            synth = (f"synthesis {dt:.0f} s" if dt is not None else "frames cached") + f" in {src}"
+        if args.synthesize_only:
+            print(synth)
+            return 0
         n_frames = len(frame_names(args.parallel))
         frame_set = n_frames * H * W * 3 * 4
         print(f"# gradient-map pipeline benchmark: {W} x {H} px ({H * W / 1e6:.1f} MP), {n_frames} frames "
-              f"(frame set {frame_set / 2**30:.2f} GiB float32), tile_rows {args.tile_rows}; synthesis "
-              f"{time.perf_counter() - t0:.0f} s, files in {folder}\n")
+              f"(frame set {frame_set / 2**30:.2f} GiB float32), tile_rows {args.tile_rows}; {synth}; "
+              f"work files in {folder}\n")
         floor1 = spawn("floor", folder, args)
+        if args.relief_only:
+            relief = spawn("relief", folder, args)
+            floor2 = spawn("floor", folder, args)
+            mpx = H * W / 1e6
+            floor_mps = [mpx / floor1["seconds"], mpx / floor2["seconds"]]
+            print(f"read floor {floor1['seconds']:.2f} / {floor2['seconds']:.2f} s ({max(floor_mps):.2f} MP/s, the "
+                  "faster as the reference; the sphere pipeline's workers skipped: --relief-only)")
+            ok = print_relief(relief, mpx, max(floor_mps), frame_set)
+            if args.json:
+                args.json.write_text(json.dumps({"width_px": W, "height_px": H, "megapixels": mpx,
+                                                 "frames": n_frames, "frame_set_bytes": frame_set,
+                                                 "floor_read_mps": floor_mps, "targets_met": {"relief_memory": ok},
+                                                 "runs": {"floor1": floor1, "floor2": floor2, "relief": relief}},
+                                                indent=1, default=float))
+            return 0
         pipe = spawn("pipeline", folder, args)
         floor2 = spawn("floor", folder, args)
         write = spawn("write", folder, args, write_bytes=pipe["bytes_written"])
@@ -418,19 +524,7 @@ def main(argv: list[str] | None = None) -> int:
     mem_ok = max(tm, anon) <= 2 * frame_set
     print(f"\npeak process memory / frame set = {max(tm, anon) / frame_set:.3f} (target <= 2: "
           f"{'met' if mem_ok else 'NOT met'})")
-    relief_ok = None
-    if relief is not None:
-        r_tm, r_anon = relief["tracemalloc_peak_bytes"], relief["anon_peak_bytes"] - relief["anon_baseline_bytes"]
-        relief_ok = max(r_tm, r_anon) <= 2 * frame_set
-        print(f"\nrelief branch (no sphere; {relief['windows'][0]} x {relief['windows'][1]} windows of "
-              f"64 px, status per channel {relief['window_status']}; {relief['files']} EXR maps): "
-              f"{relief['seconds']:.1f} s (maps {relief['seconds_maps']:.1f}, relief fit + window maps "
-              f"{relief['seconds_relief']:.1f}, apparent albedo {relief['seconds_albedo_apparent']:.1f})")
-        print("| memory (relief branch) | GiB | / frame set |\n|---|---|---|")
-        print(f"| tracemalloc peak | {r_tm / 2**30:.3f} | {r_tm / frame_set:.3f} |")
-        print(f"| peak RssAnon above baseline (sampled) | {r_anon / 2**30:.3f} | {r_anon / frame_set:.3f} |")
-        print(f"relief branch peak process memory / frame set = {max(r_tm, r_anon) / frame_set:.3f} (target <= 2: "
-              f"{'met' if relief_ok else 'NOT met'})")
+    relief_ok = print_relief(relief, mpx, floor_ref, frame_set) if relief is not None else None
     print(f"\nresult check: known pixels (red) {pipe['known_fraction']:.3f}, D_mm {np.round(pipe['D_mm'], 5).tolist()}"
           f" (rel. err. vs marble {np.round(pipe['D_rel_err'], 4).tolist()}, status {pipe['status']})")
     result = {"width_px": W, "height_px": H, "megapixels": mpx, "frames": n_frames, "frame_set_bytes": frame_set,

@@ -42,12 +42,13 @@ sec. 9; ``shared/reference/science.md`` sec. 1, 3-4.
 """
 from __future__ import annotations
 
+import time
+import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy import stats
 
 from .dipole import hankel_transform, reduced_albedo_from_total_reflectance
 
@@ -271,52 +272,6 @@ def _alpha_from_rd(R_d: float, eta: float, fdr: str, model: str) -> float:
     return float(reduced_albedo_from_total_reflectance(R_d, eta, fdr=fdr))
 
 
-def _fit_one(Dn: Array, Tn: Array, comps: tuple[int, int], pixel_mm: float, alpha: float, eta: float,
-             l_grid: Array, margin_px: int, fdr: str, confidence: float, model: str = "dipole-jensen"
-             ) -> tuple[float, float, float, bool, bool]:
-    """(l' best, lo, hi, lo_at_bound, hi_at_bound) for one channel of one window (arrays without NaN)."""
-    h, w = Tn.shape[:2]
-    win = np.zeros((h, w))
-    win[margin_px:h - margin_px, margin_px:w - margin_px] = np.outer(np.hanning(h - 2 * margin_px),
-                                                                      np.hanning(w - 2 * margin_px))
-    ph, pw = h // 2, w // 2
-    spectra = [np.fft.fft2(np.pad(Tn[..., c] - Tn[..., c].mean(), ((ph, ph), (pw, pw)), mode="reflect"))
-               for c in comps]
-    H2, W2 = spectra[0].shape
-    ky = 2 * np.pi * np.fft.fftfreq(H2, d=pixel_mm)
-    kx = 2 * np.pi * np.fft.fftfreq(W2, d=pixel_mm)
-    kk = np.sqrt(ky[:, None] ** 2 + kx[None, :] ** 2)
-    data = [Dn[..., c] - Dn[..., c].mean() for c in comps]
-    xs, ms = _mtf_table(alpha, eta, fdr, model)
-    cost = np.empty(l_grid.size)
-    for i, lp in enumerate(l_grid):
-        M = np.interp(kk * lp, xs, ms)
-        tot = 0.0
-        for spec, dat in zip(spectra, data):
-            pred = np.real(np.fft.ifft2(M * spec))[ph:ph + h, pw:pw + w]
-            tot += float(np.sum((win * (dat - (pred - pred.mean()))) ** 2))
-        cost[i] = tot
-    k = int(np.argmin(cost))
-    ll = np.log(l_grid)
-    best = ll[k]
-    cmin = cost[k]
-    if 0 < k < l_grid.size - 1:      # parabola through the three grid points around the minimum
-        y0, y1, y2 = cost[k - 1], cost[k], cost[k + 1]
-        den = y0 - 2 * y1 + y2
-        if den > 0:
-            off = 0.5 * (y0 - y2) / den
-            best = ll[k] + off * (ll[1] - ll[0])
-            cmin = y1 - 0.25 * (y0 - y2) * off
-    W2s, W4s = float(np.sum(win ** 2)), float(np.sum(win ** 4))
-    s2 = max(cmin, 0.0) / (len(comps) * W2s)                   # residual variance per pixel and component
-    thr = cmin + stats.chi2.ppf(confidence, 1) * s2 * W4s / W2s * len(comps)
-    inside = np.nonzero(cost <= max(thr, cost[k]))[0]
-    i0, i1 = int(inside.min()), int(inside.max())
-    lo = l_grid[max(i0 - 1, 0)] if i0 > 0 else l_grid[0]         # the next grid point out: conservative
-    hi = l_grid[min(i1 + 1, l_grid.size - 1)]
-    return float(np.exp(best)), float(lo), float(hi), i0 == 0, i1 == l_grid.size - 1
-
-
 def _window_origins(n: int, window: int, stride: int) -> list[int]:
     if n < window:
         return []
@@ -336,32 +291,64 @@ def _derived_interval(alpha: float, alpha_lo: float, alpha_hi: float, l_lo: floa
     return out
 
 
+def _derived_intervals(alpha_lo: Array, alpha_hi: Array, l_lo: Array, l_hi: Array) -> dict[str, Array]:
+    """:func:`_derived_interval` for arrays of jobs: {name: (n, 2)} (0, inf) where no corner is finite."""
+    corners = [parameters_from_l_prime(a, lp) for a in (alpha_lo, alpha_hi) for lp in (l_lo, l_hi)]
+    out = {}
+    for k in RELIEF_PARAMS:
+        v = np.stack([np.broadcast_to(c[k], np.shape(l_lo)) for c in corners])
+        fin = np.isfinite(v).any(axis=0)
+        with warnings.catch_warnings():           # all-NaN columns: replaced below
+            warnings.simplefilter("ignore", RuntimeWarning)
+            lo = np.where(fin, np.nanmin(v, axis=0), 0.0)
+            hi = np.where(fin, np.nanmax(v, axis=0), np.inf)
+        out[k] = np.stack([lo, hi], axis=-1)
+    return out
+
+
+def _band(a: Any, rows: slice, dtype: Any = np.float64) -> NDArray[Any]:
+    """Rows ``rows`` of an array-like (ndarray, memory map or a derived map computing a slice on access)."""
+    return np.asarray(a[rows], dtype=dtype)
+
+
 def fit_relief_windows(diffuse_normals: ArrayLike, true_normals: ArrayLike, albedo: ArrayLike, pixel_mm: float,
                        eta: float, *, window_px: int = 64, stride_px: int | None = None,
-                       valid: ArrayLike | None = None, min_valid_fraction: float = 0.9,
+                       valid: ArrayLike | None = None, region: ArrayLike | None = None,
+                       min_valid_fraction: float = 0.9,
                        margin_px: int | None = None, confidence: float = 0.95, model_bias_rel: float = 0.3,
                        albedo_rel_uncertainty: float = 0.1, weak_ratio: float = 4.0, min_relief_snr: float = 2.0,
                        min_relief_rad: float = 2e-3, fdr: str = "fit", exit_norm: float | None = None,
-                       model: str = "dipole-jensen") -> ReliefFit:
+                       model: str = "dipole-jensen", search_step: int = 3, workers: int = 1,
+                       block_bytes: int = 16 << 20) -> ReliefFit:
     """Fit l' per window and channel from the blur of ``diffuse_normals`` (H, W, 3 channels, 3 xyz) against
     ``true_normals`` (H, W, 3) (known geometry, or the specular normals of the same capture); ``albedo``
     (H, W, 3) is R_d (exit Fresnel divided out, as :func:`estimation.gradients.compute_maps` reports it);
     ``pixel_mm`` the pixel footprint on the surface; ``exit_norm``: the factor applied to the map's R_d before
-    inverting alpha' (default :func:`exit_normalization` (eta); 1.0: the map's R_d as is); ``valid`` (H, W) or (H, W, 3) usable pixels (NaN pixels are
-    never used; a window needs ``min_valid_fraction`` of them, the rest are filled with the window mean).
+    inverting alpha' (default :func:`exit_normalization` (eta); 1.0: the map's R_d as is); ``valid`` (H, W) or
+    (H, W, 3) usable pixels (NaN pixels are never used; a window needs ``min_valid_fraction`` of them, the rest are
+    filled with the window mean); ``region`` (H, W): true normals outside it count as unknown (as NaN would).
 
     Windows of ``window_px`` (>= 16) every ``stride_px`` (default: ``window_px``, non-overlapping) with a Hann
     weight inside ``margin_px`` (default window/4) of the edge: a diffuse normal depends on the relief within a few
     l_d, which the window must contain (margin >~ 2 l_d). See the module docstring for the interval and status.
+
+    Streaming: the inputs are read one band of ``window_px`` rows at a time and cast to float64 there (they may be
+    float32 memory maps or derived maps), so a 24 MP capture never holds a full-frame float64 copy; the l' search
+    of all windows and channels of a band is batched (:func:`estimation.relief_windows.search_l_prime`: real FFTs,
+    ``workers`` threads, inverse-FFT work arrays bounded by ``block_bytes``); ``search_step`` > 1 evaluates the
+    cost on a coarse grid first and refines only where the result depends on it (the minimum and the interval's
+    ends; exact where the cost is unimodal on that scale), ``search_step=1`` on the whole grid -- equal to the
+    one-window-at-a-time fit to rounding (tests/estimation/test_relief.py).
     """
-    # kept as given (float32 maps, memory maps or derived maps that compute a slice on access): each window is
-    # read once and cast to float64, so a 24 MP capture never holds a full (H, W, 3, 3) copy
-    Dn = diffuse_normals if hasattr(diffuse_normals, "__getitem__") and hasattr(diffuse_normals, "shape") \
-        else np.asarray(diffuse_normals)
-    Tn = np.asarray(true_normals)
-    alb = np.asarray(albedo)
+    from .relief_windows import alpha_from_rd_many, search_l_prime, true_spectra
+
+    t_wall, t_cpu = time.perf_counter(), time.process_time()
+    def lazy(a: Any) -> Any:
+        return a if hasattr(a, "__getitem__") and hasattr(a, "shape") else np.asarray(a)
+
+    Dn, Tn, alb = lazy(diffuse_normals), lazy(true_normals), lazy(albedo)
     H, W = Tn.shape[:2]
-    if Tn.shape != (H, W, 3) or Dn.shape != (H, W, 3, 3) or alb.shape != (H, W, 3):
+    if tuple(Tn.shape) != (H, W, 3) or tuple(Dn.shape) != (H, W, 3, 3) or tuple(alb.shape) != (H, W, 3):
         raise ValueError("need diffuse_normals (H, W, 3, 3), true_normals (H, W, 3) and albedo (H, W, 3)")
     if int(window_px) < 16:
         raise ValueError(f"window_px must be >= 16, got {window_px}")
@@ -374,10 +361,12 @@ def fit_relief_windows(diffuse_normals: ArrayLike, true_normals: ArrayLike, albe
     margin = win_px // 4 if margin_px is None else int(margin_px)
     if not 0 <= 2 * margin < win_px - 2:
         raise ValueError("margin_px leaves no pixels")
-    v = np.ones((H, W, 3), bool) if valid is None else np.asarray(valid, dtype=bool)
-    if v.ndim == 2:
-        v = np.repeat(v[..., None], 3, axis=-1)
-    finite_t = np.isfinite(Tn).all(-1)
+    v_all = None if valid is None else lazy(valid)
+    if v_all is not None and tuple(v_all.shape) not in ((H, W), (H, W, 3)):
+        raise ValueError(f"valid must have shape ({H}, {W}) or ({H}, {W}, 3), got {tuple(v_all.shape)}")
+    reg_all = None if region is None else lazy(region)
+    if reg_all is not None and tuple(reg_all.shape) != (H, W):
+        raise ValueError(f"region must have shape ({H}, {W}), got {tuple(reg_all.shape)}")
     c_exit = exit_normalization(eta) if exit_norm is None else float(exit_norm)
     l_grid = np.exp(np.linspace(np.log(pixel_mm / 4.0), np.log(2.0 * win_px * pixel_mm), _N_GRID))
     rows, cols = _window_origins(H, win_px, stride), _window_origins(W, win_px, stride)
@@ -391,11 +380,29 @@ def fit_relief_windows(diffuse_normals: ArrayLike, true_normals: ArrayLike, albe
     noise = np.full((ny, nx), np.nan)
     dnoise = np.full((ny, nx, 3), np.nan)
     full_lo, full_hi = l_grid[0], l_grid[-1]
+    n_jobs = 0
     for i, r0 in enumerate(rows):
+        band = slice(r0, r0 + win_px)
+        T_b = _band(Tn, band)
+        if reg_all is not None:
+            T_b = np.where(_band(reg_all, band, bool)[..., None], T_b, np.nan)
+        fin_b = np.isfinite(T_b).all(-1)
+        D_b, A_b = _band(Dn, band), _band(alb, band)
+        V_b = np.ones(T_b.shape, bool) if v_all is None else _band(v_all, band, bool)
+        if V_b.ndim == 2:
+            V_b = np.repeat(V_b[..., None], 3, axis=-1)
+        t_win: list[Array] = []                 # per fitted window: filled true normals and components
+        comps_win: list[tuple[int, int]] = []
+        job_w: list[int] = []                   # per job: index into t_win, column j, channel c
+        job_jc: list[tuple[int, int]] = []
+        job_data: list[Array] = []
+        job_a: list[float] = []
+        unk_jc: list[tuple[int, int]] = []      # unknown window-channels and their albedo
+        unk_a: list[float] = []
         for j, c0 in enumerate(cols):
-            sl = (slice(r0, r0 + win_px), slice(c0, c0 + win_px))
-            t = Tn[sl].astype(np.float64)
-            ok_t = finite_t[sl]
+            cs = slice(c0, c0 + win_px)
+            t = T_b[:, cs]
+            ok_t = fin_b[:, cs]
             if ok_t.mean() < min_valid_fraction:
                 continue
             t = np.where(ok_t[..., None], t, np.nanmean(t[ok_t], axis=0))
@@ -405,56 +412,82 @@ def fit_relief_windows(diffuse_normals: ArrayLike, true_normals: ArrayLike, albe
             rel_rms = float(np.sqrt(max(tot_var - 2 * sig_n ** 2, 0.0)))
             rms[i, j], noise[i, j] = rel_rms, sig_n
             relief_ok = rel_rms >= max(min_relief_snr * np.sqrt(2.0) * sig_n, min_relief_rad)
-            dn_win = np.asarray(Dn[sl], dtype=np.float64)
+            w_index = -1
             for c in range(3):
-                d = dn_win[..., c, :]
-                a_w = alb[sl][..., c].astype(np.float64)
-                ok = ok_t & v[sl][..., c] & np.isfinite(d).all(-1) & np.isfinite(a_w)
-                # unknown defaults: the whole searched range as interval
+                d = D_b[:, cs, c, :]
+                a_w = A_b[:, cs, c]
+                ok = ok_t & V_b[:, cs, c] & np.isfinite(d).all(-1) & np.isfinite(a_w)
                 a_med = c_exit * float(np.median(a_w[ok])) if ok.any() else float("nan")
                 if ok.mean() < min_valid_fraction or not (0 < a_med < 1):
-                    _put_unknown(ints, i, j, c, full_lo, full_hi, a_med, eta, fdr)
+                    unk_jc.append((j, c))
+                    unk_a.append(a_med)
                     continue
                 dn = d / np.linalg.norm(d, axis=-1, keepdims=True)
                 dn = np.where(ok[..., None], dn, np.nanmean(dn[ok], axis=0))
                 dnoise[i, j, c] = normal_noise_rad(dn, comps)
-                alpha = _alpha_from_rd(a_med, eta, fdr, model)
                 if not relief_ok:
-                    _put_unknown(ints, i, j, c, full_lo, full_hi, a_med, eta, fdr)
+                    unk_jc.append((j, c))
+                    unk_a.append(a_med)
                     continue
-                best, lo, hi, lo_b, hi_b = _fit_one(dn, t, comps, pixel_mm, alpha, eta, l_grid, margin, fdr,
-                                                    confidence, model)
-                lo_w, hi_w = lo / (1.0 + model_bias_rel), hi * (1.0 + model_bias_rel)
-                a_lo = _alpha_from_rd(a_med / (1 + albedo_rel_uncertainty), eta, fdr, model)
-                a_hi = _alpha_from_rd(min(a_med * (1 + albedo_rel_uncertainty), 0.999), eta, fdr, model)
-                point = parameters_from_l_prime(alpha, best)
-                iv = _derived_interval(alpha, a_lo, a_hi, lo_w, hi_w)
-                for k in RELIEF_PARAMS:
-                    vals[k][i, j, c] = float(point[k])
-                    ints[k][i, j, c] = iv[k]
-                weak = lo_b or hi_b or hi / lo > weak_ratio
-                status[i, j, c] = "weak" if weak else "ok"
+                if w_index < 0:
+                    w_index = len(t_win)
+                    t_win.append(t)
+                    comps_win.append(comps)
+                job_w.append(w_index)
+                job_jc.append((j, c))
+                job_a.append(a_med)
+                job_data.append(np.stack([dn[..., k] - dn[..., k].mean() for k in comps]))
+        if unk_jc:
+            _put_unknown_many(ints, i, unk_jc, np.array(unk_a), full_lo, full_hi, eta, fdr)
+        if not job_jc:
+            continue
+        n_jobs += len(job_jc)
+        a_med_j = np.array(job_a)
+        al3 = alpha_from_rd_many(np.concatenate([a_med_j, a_med_j / (1 + albedo_rel_uncertainty),
+                                                 np.minimum(a_med_j * (1 + albedo_rel_uncertainty), 0.999)]),
+                                 eta, fdr, model)
+        alpha, a_lo, a_hi = np.split(al3, 3)
+        spectra = true_spectra(np.stack(t_win), np.array(comps_win, dtype=np.int64), workers=workers)
+        best, lo, hi, lo_b, hi_b, _ = search_l_prime(spectra, np.stack(job_data), alpha, pixel_mm, eta, l_grid,
+                                                     margin, fdr, confidence, model, job_window=np.array(job_w),
+                                                     coarse_step=search_step, block_bytes=block_bytes,
+                                                     workers=workers)
+        lo_w, hi_w = lo / (1.0 + model_bias_rel), hi * (1.0 + model_bias_rel)
+        point = parameters_from_l_prime(alpha, best)
+        iv = _derived_intervals(a_lo, a_hi, lo_w, hi_w)
+        jj, cc = np.array(job_jc).T
+        for k in RELIEF_PARAMS:
+            vals[k][i, jj, cc] = point[k]
+            ints[k][i, jj, cc] = iv[k]
+        weak = lo_b | hi_b | (hi / lo > weak_ratio)
+        status[i, jj, cc] = np.where(weak, "weak", "ok")
     origins = np.array([[(r, c) for c in cols] for r in rows], dtype=np.int64).reshape(ny, nx, 2)
     prov = {"window_px": win_px, "stride_px": stride, "margin_px": margin, "pixel_mm": float(pixel_mm),
             "confidence": confidence, "model_bias_rel": model_bias_rel,
             "albedo_rel_uncertainty": albedo_rel_uncertainty, "weak_ratio": weak_ratio,
             "min_relief_snr": min_relief_snr, "min_relief_rad": min_relief_rad, "eta": eta, "fdr": fdr,
-            "exit_normalization": c_exit,
-            "method": "relief blur, profile likelihood per window (estimation.relief)"}
+            "exit_normalization": c_exit, "fitted_window_channels": n_jobs, "search_step": int(search_step),
+            "seconds": time.perf_counter() - t_wall, "cpu_seconds": time.process_time() - t_cpu,
+            "method": "relief blur, profile likelihood per window (estimation.relief), batched per band of rows "
+                      "(estimation.relief_windows)"}
     return ReliefFit(win_px, stride, float(pixel_mm), origins, vals, ints, status, rms, noise, dnoise,
                      (float(full_lo), float(full_hi)), prov)
 
 
-def _put_unknown(ints: dict[str, Array], i: int, j: int, c: int, l_lo: float, l_hi: float, a_med: float,
-                 eta: float, fdr: str) -> None:
-    """An unknown window-channel: NaN value, interval = the whole searched l' range (albedo 0-1 if unusable)."""
-    if 0 < a_med < 1:
-        al = float(reduced_albedo_from_total_reflectance(a_med, eta, fdr=fdr))
-        iv = _derived_interval(al, al, al, l_lo, l_hi)
-    else:
-        iv = {k: (0.0, float("inf")) for k in RELIEF_PARAMS}
+def _put_unknown_many(ints: dict[str, Array], i: int, jc: list[tuple[int, int]], a_med: Array, l_lo: float,
+                      l_hi: float, eta: float, fdr: str) -> None:
+    """Unknown window-channels (row ``i``, columns and channels ``jc``): NaN value, interval = the whole searched
+    l' range at the window's alpha' (the Jensen dipole's inversion), or (0, inf) where the albedo is unusable."""
+    from .relief_windows import alpha_from_rd_many
+
+    jj, cc = np.array(jc).T
+    usable = (a_med > 0) & (a_med < 1)
+    al = np.full(a_med.shape, np.nan)
+    if usable.any():
+        al[usable] = alpha_from_rd_many(a_med[usable], eta, fdr, "dipole-jensen")
+    iv = _derived_intervals(al, al, np.full(al.shape, l_lo), np.full(al.shape, l_hi))
     for k in RELIEF_PARAMS:
-        ints[k][i, j, c] = iv[k]
+        ints[k][i, jj, cc] = np.where(usable[:, None], iv[k], np.array([0.0, np.inf]))
 
 
 # --------------------------------------------------------------------------------------------------------------

@@ -56,6 +56,17 @@ def test_gradients_benchmark_quick_prints_throughput_and_memory(tmp_path):
     assert data["runs"]["pipeline"]["status"] == ["ok", "ok", "ok"]
 
 
+def test_gradients_benchmark_relief_branch_runs(tmp_path):
+    """The relief branch of rig estimate gradients (--relief-only: read floor + relief worker) at 0.15 MP."""
+    out = tmp_path / "relief.json"
+    proc = _run("gradients.py", "--json", str(out), "--megapixels", "0.15", "--relief-only")
+    assert proc.returncode == 0, proc.stderr
+    assert "relief branch peak process memory / frame set" in proc.stdout and "fitted window-channels" in proc.stdout
+    relief = json.loads(out.read_text())["runs"]["relief"]
+    assert relief["fitted_window_channels"] > 0 and relief["cpu_seconds_relief"] > 0
+    assert sum(relief["window_status"]["ok"]) + sum(relief["window_status"]["weak"]) > 0
+
+
 def test_monte_carlo_benchmark_quick_prints_figures():
     proc = _run("monte_carlo.py", "--json")
     assert proc.returncode == 0, proc.stderr

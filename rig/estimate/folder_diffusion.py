@@ -79,6 +79,18 @@ def pixel_footprint_mm(camera: PinholeCamera | OrthographicCamera) -> float:
     return float(np.linalg.norm(np.asarray(camera.C, dtype=np.float64)) / camera.fx_px)
 
 
+class _Known:
+    """~unknown, computed per slice (a full-frame boolean copy is not made): what ``fit_relief_windows`` reads
+    band by band as ``valid``."""
+
+    def __init__(self, unknown: Any) -> None:
+        self.unknown = unknown
+        self.shape = tuple(unknown.shape)
+
+    def __getitem__(self, key: Any) -> NDArray[np.bool_]:
+        return ~np.asarray(self.unknown[key], dtype=bool)
+
+
 def relief_estimate(maps: Any, true_normals: NDArray[np.float64], source: str, camera: Any,
                     region: NDArray[np.bool_] | None, out_dir: Path, fmt: str, window_px: int,
                     seed_D_mm: Any = None) -> tuple[dict[str, Any], dict[str, Path], Any]:
@@ -97,14 +109,11 @@ def relief_estimate(maps: Any, true_normals: NDArray[np.float64], source: str, c
     if window_px < 16:
         return ({"estimator": "relief blur (estimation.relief)", "status": ["unknown"] * 3,
                  "reason": f"the image ({W} x {H} px) is smaller than the smallest relief window (16 px)"}, {}, None)
-    valid = ~np.asarray(maps.unknown)
-    if region is not None:
-        valid &= np.asarray(region, dtype=bool)[..., None]
-    tn = np.where(np.isfinite(true_normals).all(-1, keepdims=True), true_normals, np.nan)
-    if region is not None:
-        tn = np.where(np.asarray(region, dtype=bool)[..., None], tn, np.nan)
-    fit = fit_relief_windows(maps.diffuse_normals, tn, maps.albedo, px, float(maps.eta),
-                             window_px=window_px, valid=valid)   # maps read and cast per window
+    reg = None if region is None else np.asarray(region, dtype=bool)
+    # every input is read one band of window rows at a time (memory maps, derived maps, float32 normals): no
+    # full-frame float64 copy; the region masks the true normals and the pixels inside the fit
+    fit = fit_relief_windows(maps.diffuse_normals, true_normals, maps.albedo, px, float(maps.eta),
+                             window_px=window_px, valid=_Known(maps.unknown), region=reg)
     reg = summarize_relief(fit, region)
     files: dict[str, Path] = {}
     out = Path(out_dir)

@@ -120,3 +120,72 @@ def test_exit_normalization_scales_the_albedo_before_inverting() -> None:
         fit = fit_relief_windows(dn, tn, alb, 0.25, ETA, window_px=32, exit_norm=norm)
         want = float(reduced_albedo_from_total_reflectance(rd, ETA))
         np.testing.assert_allclose(fit.values["alpha_prime"][0, 0], want, rtol=1e-9)
+
+
+def _relief_input(H: int = 128, W: int = 192, px: float = 0.1, seed: int = 0):
+    """A relief (two sinusoids) seen head-on; diffuse normals = the true ones blurred per channel (Gaussian,
+    6 / 3 / 1.5 px) plus noise; 2 % NaN true normals, a dark corner in blue."""
+    from scipy.ndimage import gaussian_filter
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[0:H, 0:W] * px
+    h = 0.05 * np.sin(2 * np.pi * x / 3.0) + 0.04 * np.cos(2 * np.pi * y / 2.2 + 0.3 * x)
+    R = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+    tn = normals_from_height(h, px, R)
+    dn = np.empty((H, W, 3, 3))
+    for c, b in enumerate((6.0, 3.0, 1.5)):
+        for k in range(3):
+            dn[..., c, k] = gaussian_filter(tn[..., k], b, mode="reflect")
+        dn[..., c, :] += rng.normal(0, 3e-3, (H, W, 3))
+    tn = tn + rng.normal(0, 1e-3, tn.shape)
+    tn /= np.linalg.norm(tn, axis=-1, keepdims=True)
+    tn[rng.random((H, W)) < 0.02] = np.nan
+    alb = np.array([0.6, 0.45, 0.3]) * (1 + 0.02 * rng.standard_normal((H, W, 3)))
+    alb[:40, :70, 2] = 0.0
+    return dn, tn, alb
+
+
+def _assert_same_fit(new, old, rtol: float) -> None:
+    assert (new.status == old.status).all()
+    for k in ("l_prime_mm", "l_d_mm", "D_mm", "sigma_s_prime_per_mm", "sigma_a_per_mm", "alpha_prime"):
+        np.testing.assert_allclose(new.values[k], old.values[k], rtol=rtol, equal_nan=True, err_msg=k)
+        np.testing.assert_allclose(new.intervals[k], old.intervals[k], rtol=rtol, equal_nan=True, err_msg=k)
+    for k in ("relief_rms_rad", "relief_noise_rad", "diffuse_noise_rad"):
+        np.testing.assert_array_equal(getattr(new, k), getattr(old, k), err_msg=k)
+
+
+def test_batched_equals_per_window() -> None:
+    """The band-batched fit (real FFTs pruned to the window, MTF at the distinct |k|, vectorized alpha') against
+    the one-window-at-a-time fit it replaced (tests/estimation/_relief_per_window_reference.py, verbatim from
+    c0e436a): the whole l' grid (search_step=1) and the coarse-to-fine search (default search_step=3) give the
+    same status, values and intervals to 1e-12 relative (FFT rounding) -- here 6 windows of 64 px (ok, weak and unknown: a dark
+    blue corner) and overlapping 32-px windows inside a region."""
+    from _relief_per_window_reference import fit_relief_windows_per_window
+
+    dn, tn, alb = _relief_input()
+    old = fit_relief_windows_per_window(dn, tn, alb, 0.1, ETA, window_px=64)
+    assert set(np.unique(old.status)) == {"ok", "weak", "unknown"}
+    for step in (1, 3):
+        _assert_same_fit(fit_relief_windows(dn, tn, alb, 0.1, ETA, window_px=64, search_step=step), old, 1e-12)
+    region = np.zeros(tn.shape[:2], bool)
+    region[10:120, 20:150] = True
+    tn_r = np.where(region[..., None], tn, np.nan)
+    old = fit_relief_windows_per_window(dn, tn_r, alb, 0.1, ETA, window_px=32, stride_px=24,
+                                        valid=region & np.isfinite(alb).all(-1))
+    new = fit_relief_windows(dn.astype(np.float32), tn.astype(np.float32), alb, 0.1, ETA, window_px=32,
+                             stride_px=24, region=region)
+    new64 = fit_relief_windows(dn, tn, alb, 0.1, ETA, window_px=32, stride_px=24, region=region)
+    _assert_same_fit(new64, old, 1e-12)
+    assert (new.status == old.status).all()                 # float32 inputs: cast per band, equal to ~1e-6
+    np.testing.assert_allclose(new.values["l_prime_mm"], old.values["l_prime_mm"], rtol=1e-4, equal_nan=True)
+
+
+def test_batched_equals_per_window_on_mc_maps(mc_maps) -> None:
+    """The same on Monte Carlo maps (noisy, tests/data/relief_skin1): 32-px windows every 16 px, default search;
+    equal to 1e-9 (one window's parabola on a flat cost moves l' by 3e-12 relative: rounding of the FFTs)."""
+    from _relief_per_window_reference import fit_relief_windows_per_window
+
+    maps, tn = mc_maps
+    dn, alb = np.asarray(maps.diffuse_normals, float), np.asarray(maps.albedo, float)
+    kw = {"window_px": 32, "stride_px": 16, "valid": ~maps.unknown}
+    old = fit_relief_windows_per_window(dn, tn, alb, 0.2, ETA, **kw)
+    _assert_same_fit(fit_relief_windows(dn, tn, alb, 0.2, ETA, **kw), old, 1e-9)
