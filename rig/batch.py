@@ -25,8 +25,10 @@ A worker that dies mid-batch (killed, out of memory, a lost node) takes its runn
 re-runs the task elsewhere (Dask's ``distributed.scheduler.allowed-failures``, default 3) and, since the item
 folder is only committed by its marker, nothing half-written survives.
 
-Not done: the Monte Carlo renders inside one item are not split into chunks across workers (the parallelism is per
-item; docs/scale-out.md says what chunking would need).
+Render chunks (``render_chunk_rows`` > 0, CLI ``--render-chunk-rows``): inside an item, each Monte Carlo reference
+render of a scene file is split into chunks of rows, each a task on the cluster (:func:`chunked_render`); every pixel
+keeps its random stream, so the numbers do not change. The gradient reference of capture folders and the session
+estimates are not chunked (one task per item).
 """
 from __future__ import annotations
 
@@ -42,11 +44,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Literal, Sequence
 
+import numpy as np
+
 from drivers.atomic import atomic_write_bytes, fsync_dir
 from drivers.errors import ConfigError
 
 __all__ = ["BatchItem", "BatchOptions", "BatchReport", "classify_item", "content_sha256", "result_digest",
-           "run_item", "run_batch", "local_cluster", "WORKER_ENV", "DONE_FILE", "RESULT_FILE"]
+           "run_item", "run_batch", "chunked_render", "local_cluster", "WORKER_ENV", "DONE_FILE", "RESULT_FILE"]
 
 ItemKind = Literal["session", "scene", "capture"]
 DONE_FILE = "done.json"
@@ -56,6 +60,11 @@ MARKER_FORMAT = "sssrig-batch-item"
 #: environment of each local worker process: one thread for numba's prange and for BLAS (a worker is one core)
 WORKER_ENV = {"NUMBA_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1",
               "MKL_NUM_THREADS": "1"}
+#: Dask settings of the local workers: no MALLOC_TRIM_THRESHOLD_ (the nanny's default 65536 returns freed memory to
+#: the system at once: measured on a zoo scene's reference estimate in a worker, 25x the page faults and 10x the
+#: system time of the same estimate in a plain process), no statistical profiler (it samples every thread's stack
+#: every 10 ms)
+NANNY_CONFIG = {"distributed.nanny.pre-spawn-environ": {}, "distributed.worker.profile.enabled": False}
 #: result keys that differ between two runs of the same inputs (timings, timestamps, where outputs were written)
 _VOLATILE = re.compile(r"seconds|^created$|^paths_per_s$|^out_dir$|^files$|^elapsed")
 #: output files whose bytes are part of an item's digest (the maps; sidecars and previews hold paths and times)
@@ -94,6 +103,9 @@ class BatchOptions:
     reference: bool = False
     maps_format: str = "exr"
     calibration: str | None = None
+    #: > 0: each Monte Carlo reference render of a scene split into chunks of this many rows across the workers
+    #: (bit-identical to whole renders, so not part of :meth:`for_kind` nor of the done-marker's options)
+    render_chunk_rows: int = 0
 
     def for_kind(self, kind: ItemKind) -> dict[str, Any]:
         """The options that reach an item of this kind (what the done-marker records and compares)."""
@@ -244,6 +256,43 @@ def _finished(folder: Path, sha: str, options: dict[str, Any]) -> dict[str, Any]
     return None
 
 
+# ------------------------------------------------------------------------------------------------ render chunks
+def _stack_chunks(parts: Sequence[Any]) -> Any:
+    """One :class:`simulators.mc.MCImage` from the images of consecutive row chunks (in order)."""
+    from simulators.mc.render import MCImage
+
+    n_paths = [max(1, int(p.mask.sum())) for p in parts]
+    w = sum(n_paths)
+    cat = (lambda name: None if getattr(parts[0], name) is None else
+           np.concatenate([getattr(p, name) for p in parts], axis=0))
+    return MCImage(cat("radiance"), cat("stderr"), cat("mask"), parts[0].spp, parts[0].seed,
+                   float(sum(p.seconds for p in parts)),
+                   float(sum(p.mean_collisions * n for p, n in zip(parts, n_paths)) / w),
+                   float(sum(p.truncated_fraction * n for p, n in zip(parts, n_paths)) / w),
+                   cat("d_log_sigma"), cat("d_log_sigma_stderr"))
+
+
+def chunked_render(shape: Any, media: Any, camera: Any, lights: Any, *, chunk_rows: int, **kw: Any) -> Any:
+    """:func:`simulators.mc.render` split into chunks of ``chunk_rows`` rows, each a task on the Dask cluster this
+    task runs on (``distributed.worker_client``: the calling task leaves its worker slot while it waits), stacked
+    in order. Every pixel keeps its random stream (render's ``rows``), so the image is bit-identical to the whole
+    render for any chunking and any number of workers. Outside a Dask worker: the chunks one after another."""
+    from simulators.mc import render
+
+    h = int(camera.height_px)
+    bounds = [(r, min(h, r + int(chunk_rows))) for r in range(0, h, int(chunk_rows))]
+    if len(bounds) == 1:
+        return render(shape, media, camera, lights, **kw)
+    try:
+        from distributed import get_worker, worker_client
+        get_worker()
+    except (ImportError, ValueError):
+        return _stack_chunks([render(shape, media, camera, lights, rows=b, **kw) for b in bounds])
+    with worker_client() as client:
+        futures = [client.submit(render, shape, media, camera, lights, rows=b, pure=False, **kw) for b in bounds]
+        return _stack_chunks(client.gather(futures))
+
+
 # ------------------------------------------------------------------------------------------------ one item
 def _estimate(item: BatchItem, options: dict[str, Any], folder: Path) -> tuple[dict[str, Any], list[Path]]:
     """Run the item's estimator with outputs in ``folder``; (JSON result, output files that enter the digest)."""
@@ -266,10 +315,16 @@ def _estimate(item: BatchItem, options: dict[str, Any], folder: Path) -> tuple[d
     return estimate_session(item.path, calibration=options["calibration"]), []
 
 
-def run_item(item: BatchItem, options: dict[str, Any], out_dir: str | os.PathLike[str], sha: str) -> dict[str, Any]:
+def run_item(item: BatchItem, options: dict[str, Any], out_dir: str | os.PathLike[str], sha: str,
+             chunk_rows: int = 0) -> dict[str, Any]:
     """The task of one item (runs on a worker, or in this process for the serial run): clear ``OUT/<key>``, run
     the estimate, write ``result.json`` and then ``done.json`` atomically; return the marker's record.
-    Exceptions of the estimate propagate (the batch reports the item failed; Dask does not retry them)."""
+    ``chunk_rows`` > 0: the scene references' Monte Carlo renders in chunks of that many rows across the cluster
+    (:func:`chunked_render`; the same numbers). Exceptions of the estimate propagate (the batch reports the item
+    failed; Dask does not retry them)."""
+    from functools import partial
+
+    from .mc_reference import render_with
     from .provenance import json_default
     from .session import software_version
 
@@ -278,7 +333,8 @@ def run_item(item: BatchItem, options: dict[str, Any], out_dir: str | os.PathLik
     if folder.exists():     # a killed earlier attempt or an item whose inputs changed: start clean
         shutil.rmtree(folder)
     folder.mkdir(parents=True)
-    result, files = _estimate(item, options, folder)
+    with render_with(partial(chunked_render, chunk_rows=chunk_rows) if chunk_rows > 0 else None):
+        result, files = _estimate(item, options, folder)
     atomic_write_bytes(folder / RESULT_FILE,
                        (json.dumps(result, indent=2, default=json_default) + "\n").encode(), overwrite=True)
     record = {"format": MARKER_FORMAT, "format_version": 1, "key": item.key, "kind": item.kind,
@@ -301,9 +357,12 @@ def local_cluster(workers: int, **kw: Any) -> Any:
 
     if workers < 1:
         raise ValueError(f"workers must be >= 1 for a LocalCluster; got {workers}")
+    import dask
+
     kw.setdefault("dashboard_address", None)
-    return LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
-                        env={**WORKER_ENV, **kw.pop("env", {})}, silence_logs=kw.pop("silence_logs", 40), **kw)
+    with dask.config.set(NANNY_CONFIG):  # read by each Nanny when it is made (here), kept for its restarts
+        return LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
+                            env={**WORKER_ENV, **kw.pop("env", {})}, silence_logs=kw.pop("silence_logs", 40), **kw)
 
 
 def _progress_bar(total: int, enabled: bool) -> Any:
@@ -362,7 +421,7 @@ def run_batch(items: Sequence[str | os.PathLike[str]], out_dir: str | os.PathLik
         if todo and client is None and scheduler is None and workers == 0:
             for it in todo:
                 try:
-                    rec = run_item(it, opts.for_kind(it.kind), out, shas[it.key])
+                    rec = run_item(it, opts.for_kind(it.kind), out, shas[it.key], opts.render_chunk_rows)
                 except Exception as exc:  # noqa: BLE001 - one failed item does not stop the batch
                     finished(it, None, exc)
                 else:
@@ -393,7 +452,7 @@ def _run_distributed(todo: list[BatchItem], opts: BatchOptions, out: Path, shas:
                 say(f"starting a local Dask cluster: {workers} worker processes, 1 thread each")
                 own_cluster = local_cluster(workers)
                 own_client = client = Client(own_cluster)
-        futures = {client.submit(run_item, it, opts.for_kind(it.kind), str(out), shas[it.key],
+        futures = {client.submit(run_item, it, opts.for_kind(it.kind), str(out), shas[it.key], opts.render_chunk_rows,
                                  key=f"rig-batch-{it.key}-{shas[it.key][:12]}", pure=False): it for it in todo}
         for fut in as_completed(list(futures)):
             it = futures[fut]
@@ -428,7 +487,8 @@ def run_cli(args: Any) -> int:
     opts = BatchOptions(model=args.model, method=args.method, reference_spp=args.reference_spp,
                         reference_iterations=args.reference_iterations, reference_seed=args.reference_seed,
                         reference=bool(args.reference), maps_format=args.format,
-                        calibration=None if args.calibration is None else str(args.calibration))
+                        calibration=None if args.calibration is None else str(args.calibration),
+                        render_chunk_rows=args.render_chunk_rows)
     fb = getattr(args, "feedback", None)
     say = fb if fb is not None else (lambda m: print(m, file=sys.stderr, flush=True))
     report = run_batch(args.items, args.out, options=opts, workers=args.workers, scheduler=args.scheduler,

@@ -72,10 +72,40 @@ def test_serial_run_writes_each_item_and_its_marker(serial: Any) -> None:
     assert [i["status"] for i in listing["items"]] == ["done", "done"]
 
 
+def test_chunked_render_is_bit_identical_to_whole_render() -> None:
+    import numpy as np
+
+    from estimation.camera import PinholeCamera
+    from estimation.single_image import PointLights
+    from rig.batch import chunked_render
+    from simulators.mc import Medium, Sphere, render
+
+    cam = PinholeCamera(12, 10, 20.0, 20.0, 6.0, 5.0, ((1, 0, 0), (0, 0, -1), (0, 1, 0)), (0.0, -100.0, 0.0))
+    scene = (Sphere((0.0, 0.0, 0.0), 10.0), [Medium.from_reduced(1.0, 0.01, eta=1.3)] * 2, cam,
+             PointLights(np.array([[0.0, -200.0, 100.0]]), np.array([1.0])))
+    kw = dict(spp=4, seed=3, derivatives=True, fd_log_sigma_s=0.1)
+    whole = render(*scene, **kw)
+    for rows in (3, 4):                          # 10 rows: uneven last chunks
+        part = chunked_render(*scene, chunk_rows=rows, **kw)
+        for name in ("radiance", "stderr", "mask", "d_log_sigma", "d_log_sigma_stderr"):
+            assert np.array_equal(getattr(part, name), getattr(whole, name)), (rows, name)
+    assert whole.mask.any() and not whole.mask.all()
+    with pytest.raises(ValueError, match="rows"):
+        render(*scene, rows=(5, 11), **kw)
+
+
 def test_two_workers_bit_identical_to_serial(scenes: list[Path], serial: Any, client: Any,
                                              tmp_path: Path) -> None:
-    report = run_batch(scenes, tmp_path, options=OPTIONS, client=client)
+    """Each item a task, and each of its reference renders split into 16-row chunks across the two workers."""
+    from dataclasses import replace
+
+    from distributed import get_task_stream
+
+    with get_task_stream(client) as ts:
+        report = run_batch(scenes, tmp_path, options=replace(OPTIONS, render_chunk_rows=16), client=client)
     assert report.ok and report.count("done") == 2
+    chunks = [t for t in ts.data if str(t["key"]).startswith("render-")]
+    assert len(chunks) >= 2 * 3                   # 48-row frames: 3 chunks per render, >= 1 render per item
     assert _digests(report) == _digests(serial)
     pids = {r["worker_pid"] for r in report.records}
     assert os.getpid() not in pids      # ran on the workers, not here
