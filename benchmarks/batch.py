@@ -7,7 +7,9 @@ from one run:
 
 - per worker count: cluster start + warm-up (every worker imports the estimators and loads numba's cached kernels
   before the clock of the batch starts), the batch's wall time, the sum of the items' seconds on the workers;
-- the speed-up = wall(1 worker) / wall(2 workers) (anchor: the 1-worker batch of the same run; target >= 1.7) and
+- the speed-up = wall(1 worker) / wall(2 workers) (anchor: the 1-worker batch of the same run; target >= 1.7),
+  the CPU seconds the items got per wall second ("cores got": on a machine shared with other jobs, what the
+  workers were given; its 2-vs-1 ratio says how much more CPU two workers got than one), and
   whether the two batches' result digests (rig.batch.result_digest: every number of every result, without
   timings) are bit-identical; with ``--serial`` also the in-process serial run's digests;
 - the per-task costs behind docs/scale-out.md's predictions: median item seconds, Dask's overhead per task (200
@@ -86,6 +88,7 @@ def run_workers(items: list[Path], opts: BatchOptions, workers: int, out: Path) 
     assert rep.ok, [r for r in rep.records if r["status"] == "failed"]
     return {"workers": workers, "start_and_warm_s": t_start, "wall_s": wall,
             "item_seconds": {r["key"]: r["seconds"] for r in rep.records},
+            "item_cpu_seconds": {r["key"]: r["cpu_seconds"] for r in rep.records},
             "digests": {r["key"]: r["digest"] for r in rep.records},
             "worker_pids": sorted({r["worker_pid"] for r in rep.records}),
             "load_before": load0, "load_after": load1, "dask_overhead_per_task_s": overhead}
@@ -127,20 +130,24 @@ def main(argv: list[str] | None = None) -> int:
            "bit_identical_serial": None if serial is None else serial["digests"] == one["digests"],
            "serial_wall_s": None if serial is None else serial["wall_s"],
            "median_item_s_1_worker": statistics.median(item_s), "content_hash_s_per_item": hash_s,
-           "dask_overhead_per_task_s": two["dask_overhead_per_task_s"], "cpu_count": os.cpu_count()}
+           "dask_overhead_per_task_s": two["dask_overhead_per_task_s"], "cpu_count": os.cpu_count(),
+           "cpu_rate_ratio_2_vs_1": (sum(two["item_cpu_seconds"].values()) / two["wall_s"])
+           / (sum(one["item_cpu_seconds"].values()) / one["wall_s"])}
     if args.json:
         print(json.dumps(doc, indent=2))
         return 0
     print(f"# rig estimate batch: {len(items)} zoo scene files, mc-table+reference, {args.spp} spp, "
           f"{args.iterations} iteration(s); {os.cpu_count()} cores")
-    print(f"{'workers':>7} {'start+warm s':>12} {'batch wall s':>12} {'sum item s':>10} {'load before':>16} "
-          f"{'load after':>16}")
+    print(f"{'workers':>7} {'start+warm s':>12} {'batch wall s':>12} {'sum item s':>10} {'sum item CPU s':>14} "
+          f"{'cores got':>9} {'load before':>16} {'load after':>16}")
     for w, r in runs.items():
         lb = "/".join(f"{x:.1f}" for x in r["load_before"])
         la = "/".join(f"{x:.1f}" for x in r["load_after"])
+        cpu = sum(r["item_cpu_seconds"].values())
         print(f"{w:>7} {r['start_and_warm_s']:>12.1f} {r['wall_s']:>12.1f} {sum(r['item_seconds'].values()):>10.1f} "
-              f"{lb:>16} {la:>16}")
-    print(f"speed-up 2 vs 1 workers: {speedup:.2f}x (target >= 1.7: {'met' if speedup >= 1.7 else 'NOT met'})")
+              f"{cpu:>14.1f} {cpu / r['wall_s']:>9.2f} {lb:>16} {la:>16}")
+    print(f"speed-up 2 vs 1 workers: {speedup:.2f}x (target >= 1.7: {'met' if speedup >= 1.7 else 'NOT met'}); "
+          f"CPU-time speed-up (item CPU s per wall s, 2 vs 1): {doc['cpu_rate_ratio_2_vs_1']:.2f}x")
     print(f"bit-identical 1 vs 2 workers: {identical}")
     if serial is not None:
         print(f"bit-identical serial (in process, {serial['wall_s']:.1f} s) vs workers: {doc['bit_identical_serial']}")

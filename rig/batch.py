@@ -328,7 +328,7 @@ def run_item(item: BatchItem, options: dict[str, Any], out_dir: str | os.PathLik
     from .provenance import json_default
     from .session import software_version
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     folder = Path(out_dir) / item.key
     if folder.exists():     # a killed earlier attempt or an item whose inputs changed: start clean
         shutil.rmtree(folder)
@@ -341,7 +341,7 @@ def run_item(item: BatchItem, options: dict[str, Any], out_dir: str | os.PathLik
               "item": str(item.path), "content_sha256": sha, "options": options,
               "options_sha256": _options_sha256(options), "digest": result_digest(result, files),
               "success": bool(result.get("success", True)) if isinstance(result, dict) else True,
-              "seconds": time.perf_counter() - t0, "worker_pid": os.getpid(), "host": os.uname().nodename,
+              "seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0, "worker_pid": os.getpid(), "host": os.uname().nodename,
               "software_version": software_version(),
               "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
     atomic_write_bytes(folder / DONE_FILE, (json.dumps(record, indent=2) + "\n").encode(), overwrite=True)
