@@ -72,6 +72,8 @@ _DIGEST_SUFFIXES = (".exr", ".tif", ".tiff", ".npy")
 #: folders inside an input folder that earlier estimates wrote (not inputs: left out of the content hash)
 _OUTPUT_DIRS = {"session": ("estimates", "report"), "capture": ("maps",)}
 _HASH_CHUNK = 1 << 20
+#: threads hashing the items' inputs on the calling machine (SHA-256 ran at ~450 MB/s per core here)
+HASH_THREADS = 8
 
 
 class BatchItemError(ConfigError):
@@ -392,7 +394,10 @@ def run_batch(items: Sequence[str | os.PathLike[str]], out_dir: str | os.PathLik
         if it.key in seen:
             raise BatchItemError(str(it.path), "ITEMS", "each item once", "given twice")
         seen[it.key] = it
-    shas = {it.key: content_sha256(it) for it in resolved}
+    # hashing reads every input byte on this machine; hashlib releases the GIL, so threads overlap reads and hashing
+    from concurrent.futures import ThreadPoolExecutor
+    with ThreadPoolExecutor(max_workers=min(HASH_THREADS, max(1, len(resolved)))) as pool:
+        shas = dict(zip((it.key for it in resolved), pool.map(content_sha256, resolved)))
     report = BatchReport(out, workers=scheduler or (getattr(client, "scheduler", None) and "client") or workers)
     todo: list[BatchItem] = []
     for it in resolved:
@@ -489,10 +494,17 @@ def run_cli(args: Any) -> int:
                         reference=bool(args.reference), maps_format=args.format,
                         calibration=None if args.calibration is None else str(args.calibration),
                         render_chunk_rows=args.render_chunk_rows)
+    import logging
+
+    if not getattr(args, "verbose", 0) and getattr(args, "log_level", None) is None:
+        logging.getLogger("distributed").setLevel(logging.ERROR)   # the cluster's INFO/WARNING chatter (-v shows it)
     fb = getattr(args, "feedback", None)
     say = fb if fb is not None else (lambda m: print(m, file=sys.stderr, flush=True))
+    progress = not (args.no_progress or getattr(args, "quiet", False))
+    if fb is not None and progress and sys.stderr.isatty():
+        fb.suspend()                     # the items' bar owns the status line
     report = run_batch(args.items, args.out, options=opts, workers=args.workers, scheduler=args.scheduler,
-                       say=say, progress=not (args.no_progress or getattr(args, "quiet", False)))
+                       say=say, progress=progress)
     if args.json:
         print(json.dumps(report.to_dict(), indent=2))
     else:
