@@ -343,8 +343,8 @@ def run_item(item: BatchItem, options: dict[str, Any], out_dir: str | os.PathLik
               "item": str(item.path), "content_sha256": sha, "options": options,
               "options_sha256": _options_sha256(options), "digest": result_digest(result, files),
               "success": bool(result.get("success", True)) if isinstance(result, dict) else True,
-              "seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0, "worker_pid": os.getpid(), "host": os.uname().nodename,
-              "software_version": software_version(),
+              "seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0,
+              "worker_pid": os.getpid(), "host": os.uname().nodename, "software_version": software_version(),
               "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
     atomic_write_bytes(folder / DONE_FILE, (json.dumps(record, indent=2) + "\n").encode(), overwrite=True)
     fsync_dir(folder.parent)

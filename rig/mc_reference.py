@@ -98,7 +98,7 @@ class MonteCarloReference:
         media = [Medium.from_reduced(float(s), float(a), g=self.g, eta=float(eta)) for s, a in zip(ssp, sa)]
         fn = _RENDER.get() or render
         img = fn(self.shape, media, self.camera, self.lights, spp=int(self.spp), seed=int(seed),
-                     derivatives=self.derivatives, fd_log_sigma_s=self.fd_log_sigma_s)
+                 derivatives=self.derivatives, fd_log_sigma_s=self.fd_log_sigma_s)
         valid = img.mask if self.valid_px is None else img.mask & np.asarray(self.valid_px, dtype=bool)
         valid = np.broadcast_to(valid[..., None], img.radiance.shape)
         obs, sig = sample_at_points(img.radiance, img.stderr ** 2, valid, self.camera, self.patches.centers_mm,
