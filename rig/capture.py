@@ -20,10 +20,10 @@ from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from drivers.errors import DeviceError, LimitError, RigError
+from drivers.errors import LimitError, RigError
 
 from .config import RigConfig, parse_config
-from .factory import ROLES, SimulatedRig, open_devices, skip_exposure_waits, start_simulators
+from .factory import ROLES, SimulatedRig, open_devices, skip_exposure_waits, start_simulators, uses_simulators
 from .geometry import RigGeometry, geometry_to_dict, rig_geometry
 from .plan import CaptureRequest, Step, budget, build_plan, steps_from_dicts
 from .runner import Devices, RunControl, RunResult, run_plan
@@ -56,10 +56,6 @@ def simulated(config: RigConfig) -> RigConfig:
     return r(config, sphere=r(config.sphere, url="sim"), trigger=r(config.trigger, url="sim"),
              camera=r(config.camera, driver="folder", folder="sim"),
              total_station=r(config.total_station, url="sim"))
-
-
-def uses_simulators(config: RigConfig) -> bool:
-    return "sim" in (config.sphere.url, config.trigger.url, config.camera.folder, config.total_station.url)
 
 
 @dataclass

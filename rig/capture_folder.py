@@ -791,14 +791,6 @@ def _albedo_scale(cap: Capture, leds: LedRig | None, n_ref: NDArray[np.float64])
 
 
 
-def _channel_medians(a: NDArray[Any], known: NDArray[np.bool_]) -> list[float | None]:
-    out: list[float | None] = []
-    for c in range(3):
-        v = np.asarray(a[..., c], dtype=np.float64)[known[..., c]]
-        out.append(float(np.median(v)) if v.size else None)
-    return out
-
-
 def _strip_gradients(prov: Mapping[str, Any]) -> dict[str, Any]:
     return {k: v for k, v in prov.items() if k not in ("gradients", "maps")}
 
@@ -956,7 +948,7 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
     t_maps = time.perf_counter() - t0
     notes = list(cap.notes)
     from .folder_diffusion import apply_dark_channels, relief_branch, write_albedo_apparent
-    from .folder_regions import grounded_summary, region_summaries
+    from .folder_regions import channel_medians, grounded_summary, region_summaries
     apply_dark_channels(cap, maps, obj, exposure, notes)
     known = ~maps.unknown
     seed_est = None
@@ -994,7 +986,7 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
     if seed_est is not None:
         assert cap.seed is not None
         seed_summary = {"estimator": "seed D = k R_d/|n_z| (Zhu et al.)", "k_mm": cap.seed.k_mm,
-                        "D_mm_median": _channel_medians(seed_est.D_mm, ~seed_est.unknown),
+                        "D_mm_median": channel_medians(seed_est.D_mm, ~seed_est.unknown),
                         "provenance": cap.seed.provenance,
                         "caveat": "k is an empirical length valid for the reference's geometry and material "
                                   "(docs/gradients.md sec. 6)"}
@@ -1010,15 +1002,15 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
         "mode": "ideal" if cap.leds.ideal else "leds", "eta": rad.eta, "image_px": [W, H],
         "albedo_scale": scale, "albedo_scale_source": scale_prov["source"],
         "maps": {"known_pixels": [int(known[..., c].sum()) for c in range(3)],
-                 "albedo_median": _channel_medians(maps.albedo, known),
-                 "R_d_median": _channel_medians(maps.albedo, known),
-                 "albedo_apparent_median": _channel_medians(alb_app, known),
+                 "albedo_median": channel_medians(maps.albedo, known),
+                 "R_d_median": channel_medians(maps.albedo, known),
+                 "albedo_apparent_median": channel_medians(alb_app, known),
                  "albedo_definitions": {
                      "R_d": "albedo_diffuse file: the dipole's total diffuse reflectance, exit Fresnel divided out: "
                             "I_full = F_t(eta, n.v) E_full(n)/E_full(n_ref) R_d / albedo_scale",
                      "albedo_apparent": "albedo_apparent file: pi L / E = R_d F_t(eta, n.v) E_t/E (Ma et al. "
                                         "2007's diffuse albedo; a renderer's diffuse texture)"},
-                 "diffuse_length_median": _channel_medians(maps.diffuse_length(), known),
+                 "diffuse_length_median": channel_medians(maps.diffuse_length(), known),
                  "specular": maps.specular_normals is not None},
         "diffusion": diff_summary, "seed": seed_summary, "notes": notes,
     }

@@ -11,15 +11,13 @@ from __future__ import annotations
 import math
 import tomllib
 from dataclasses import asdict, dataclass, field
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
 from drivers.errors import ConfigError
 
 from . import schema
-
-DEFAULT_RIG = "default_rig.toml"
+from .data import DEFAULT_RIG, default_config_text
 
 # Jensen et al. 2001 Table 2 (pbrt's units: 1/mm, reduced sigma_s'); see shared science.md section 2.
 MATERIALS: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] = {
@@ -386,7 +384,7 @@ def parse_config(data: dict[str, Any], file: str = "<memory>") -> RigConfig:
 def load_config(path: str | Path | None = None) -> RigConfig:
     """Load and validate a rig config; ``None`` loads the packaged default simulated rig."""
     if path is None:
-        text = resources.files("rig.data").joinpath(DEFAULT_RIG).read_text()
+        text = default_config_text()
         file = f"<package>/rig/data/{DEFAULT_RIG}"
     else:
         p = Path(path)
@@ -406,5 +404,3 @@ def load_config(path: str | Path | None = None) -> RigConfig:
     return cfg
 
 
-def default_config_text() -> str:
-    return resources.files("rig.data").joinpath(DEFAULT_RIG).read_text()

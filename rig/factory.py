@@ -112,6 +112,11 @@ class SimulatedReleaseCable(protocol_loop.Serial):
                 self.callback_errors.append(exc)
 
 
+def uses_simulators(config: RigConfig) -> bool:
+    """Whether any device URL of ``config`` names the simulators ("sim")."""
+    return "sim" in (config.sphere.url, config.trigger.url, config.camera.folder, config.total_station.url)
+
+
 def start_simulators(config: RigConfig, geometry: RigGeometry, workdir: Path | None = None
                      ) -> SimulatedRig:
     """Start every simulator the config asks for (URL ``sim``). The simulated camera drops its frames under

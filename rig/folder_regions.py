@@ -205,9 +205,14 @@ def _relief_region(fit: Any, region: NDArray[np.bool_]) -> dict[str, Any]:
     return out
 
 
-def _medians(a: Any, known: NDArray[np.bool_]) -> list[float | None]:
-    from .capture_folder import _channel_medians
-    return _channel_medians(a, known)
+def channel_medians(a: Any, known: NDArray[np.bool_]) -> list[float | None]:
+    """Per channel, the median of ``a[..., c]`` over the ``known[..., c]`` pixels (None where none is known): the
+    summaries of the whole object and of each region."""
+    out: list[float | None] = []
+    for c in range(3):
+        v = np.asarray(a[..., c], dtype=np.float64)[known[..., c]]
+        out.append(float(np.median(v)) if v.size else None)
+    return out
 
 
 def region_summaries(regions: RegionLabels, maps: Any, albedo_apparent: Any, *, diffusion: Any = None,
@@ -225,8 +230,8 @@ def region_summaries(regions: RegionLabels, maps: Any, albedo_apparent: Any, *, 
         entry: dict[str, Any] = {
             "label": label, "name": name, "n_pixels_label": int(np.count_nonzero(m)),
             "maps": {"known_pixels": [int(np.count_nonzero(k[..., c])) for c in range(3)],
-                     "R_d_median": _medians(maps.albedo, k),
-                     "albedo_apparent_median": _medians(albedo_apparent, k)}}
+                     "R_d_median": channel_medians(maps.albedo, k),
+                     "albedo_apparent_median": channel_medians(albedo_apparent, k)}}
         if diffusion is not None:
             assert radius_mm is not None and eta is not None
             entry["diffusion"] = _sphere_region(diffusion, m, radius_mm, eta, min_pixels)

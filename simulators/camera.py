@@ -15,7 +15,6 @@ from __future__ import annotations
 import hashlib
 import queue
 import threading
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -27,36 +26,7 @@ from estimation.camera import PinholeCamera
 from .dng import write_cfa_dng
 from .mc_capture import MCSettings, check_render_mode
 from .scene import SceneObject, render_object
-
-
-@dataclass(frozen=True)
-class SensorModel:
-    gain_dn_per_unit: float      # DN per (radiance unit x second)
-    black_level_dn: int
-    white_level_dn: int
-    read_noise_dn: float
-    electrons_per_dn: float
-
-
-def _signal_mosaic(rgb: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
-    """(H, W, 3) -> (2H, 2W) RGGB mosaic (each RGB pixel becomes one 2x2 CFA cell)."""
-    h, w, _ = rgb.shape
-    m = np.empty((2 * h, 2 * w))
-    m[0::2, 0::2] = rgb[..., 0]
-    m[0::2, 1::2] = rgb[..., 1]
-    m[1::2, 0::2] = rgb[..., 1]
-    m[1::2, 1::2] = rgb[..., 2]
-    return m
-
-
-def expose(radiance: npt.NDArray[np.float64], exposure_s: float, sensor: SensorModel,
-           rng: np.random.Generator) -> npt.NDArray[np.uint16]:
-    """Radiance image (H, W, 3) -> noisy raw mosaic (2H, 2W) in DN, clipped at the white level."""
-    signal_dn = _signal_mosaic(radiance) * sensor.gain_dn_per_unit * exposure_s
-    electrons = rng.poisson(np.maximum(signal_dn, 0.0) * sensor.electrons_per_dn)
-    dn = electrons / sensor.electrons_per_dn + rng.normal(0.0, sensor.read_noise_dn, signal_dn.shape)
-    dn = np.round(dn + sensor.black_level_dn)
-    return np.clip(dn, 0, sensor.white_level_dn).astype(np.uint16)
+from .sensor import SensorModel, expose
 
 
 class SimulatedCamera:

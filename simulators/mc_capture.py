@@ -44,6 +44,8 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
+from .objects import BumpySlabObject, MeshObject, SphereObject
+
 FloatArray = npt.NDArray[np.float64]
 
 __all__ = ["RENDER_MODES", "LED_MODES", "MCSettings", "mc_shape", "mc_media", "led_environment", "led_lights",
@@ -144,8 +146,6 @@ def _is_box_mesh(mesh: Any) -> bool:
 def mc_shape(obj: Any, settings: MCSettings | None = None) -> Any:
     """The Monte Carlo shape of a scene object (module docstring); meshes are cached on the object."""
     from simulators import mc
-
-    from .scene import BumpySlabObject, MeshObject, SphereObject
 
     s = settings or MCSettings()
     if isinstance(obj, SphereObject):

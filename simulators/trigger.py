@@ -20,8 +20,8 @@ import time
 from typing import Callable
 
 from drivers.errors import ConnectionLost, ProtocolError
-from drivers.trigger import esper as ec
-from drivers.trigger import hid_box as hc
+from drivers.trigger import esper_codec as ec
+from drivers.trigger import hid_box_codec as hc
 
 from .serve import Faults, serve
 

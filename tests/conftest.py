@@ -18,6 +18,7 @@ if int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")) > 1:
 HEAVY_FILES: tuple[str, ...] = (
     "tests/simulators/test_mc_frames_single_image.py",
     "tests/rig/test_scene_zoo.py",
+    "tests/rig/test_scene_file_mc_reference.py",
     "tests/rig/test_scene_file.py",
     "tests/estimation/test_model_correction.py",
     "tests/simulators/test_mc_frames_gradients.py",

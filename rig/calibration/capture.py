@@ -259,8 +259,7 @@ def _session_name(prefix: str, sessions_dir: Path) -> str:
 @contextlib.contextmanager
 def _rig(config: RigConfig, geometry: RigGeometry, world: Any | None) -> Iterator[tuple[Any, Any]]:
     """Open the devices (starting the simulators first when the config asks for them)."""
-    from ..capture import uses_simulators
-    from ..factory import open_devices, skip_exposure_waits, start_simulators
+    from ..factory import open_devices, skip_exposure_waits, start_simulators, uses_simulators
 
     with contextlib.ExitStack() as stack:
         sim = None

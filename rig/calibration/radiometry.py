@@ -21,41 +21,19 @@ black_tag)):
 """
 from __future__ import annotations
 
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 import numpy.typing as npt
 
 from .capture import Captured, Shot, design_irradiance, displayed_drive, exposure_ms
 from .context import StepContext, StepOutput
+from .linearity import fit_linearity, linearize
 
 SECTION = "radiometry"
 FloatArray = npt.NDArray[np.float64]
 
 __all__ = ["SECTION", "shots", "compute", "compare", "linearize", "fit_linearity"]
-
-
-def linearize(values: npt.ArrayLike, result: Mapping[str, Any]) -> FloatArray:
-    """Frame values (H, W, 3) from ``load_linear`` -> black-corrected, linear values (white level = 1), with the
-    ``black_offset_dn``, ``span_dn`` and ``nonlinearity`` of a radiometry ``result``."""
-    v = np.asarray(values, float) - np.asarray(result["black_offset_dn"], float) / float(result["span_dn"])
-    beta = np.asarray(result["nonlinearity"], float)
-    with np.errstate(invalid="ignore"):
-        safe = np.where(np.abs(beta) > 1e-12, beta, 1.0)
-        x = (1.0 - np.sqrt(np.maximum(1.0 - 4.0 * safe * v, 0.0))) / (2.0 * safe)
-    return np.where(np.abs(beta) > 1e-12, x, v)
-
-
-def fit_linearity(exposure_s: npt.ArrayLike, values: npt.ArrayLike) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Fit v = a t - c t^2 per channel (least squares, through the origin). Returns a (3,), beta = c / a^2 (3,)
-    and the largest relative deviation of the data from the linear part a t (3,)."""
-    t = np.asarray(exposure_s, float)
-    V = np.asarray(values, float)
-    A = np.stack([t, -t * t], axis=1)
-    coef, *_ = np.linalg.lstsq(A, V, rcond=None)
-    a, c = coef
-    dev = np.max(np.abs(V - np.outer(t, a)) / np.outer(t, a), axis=0)
-    return a, c / (a * a), dev
 
 
 def _tile_radiance(ctx: StepContext) -> float:

@@ -8,13 +8,16 @@ from __future__ import annotations
 import tomllib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from drivers.errors import ConfigError
 
-from ..config import RigConfig
+from ..data import default_config_text
+
+if TYPE_CHECKING:  # annotations only: rig.config imports this module to check [calibration]
+    from ..config import RigConfig
 
 Vec3 = tuple[float, float, float]
 
@@ -252,8 +255,6 @@ def load_settings(config: RigConfig, table: dict[str, Any] | None = None) -> Cal
     src = config.source
     text = None
     if src.startswith("<package>"):
-        from ..config import default_config_text
-
         text = default_config_text()
     elif not src.startswith("<") and Path(src).is_file():
         text = Path(src).read_text()

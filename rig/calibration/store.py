@@ -35,6 +35,7 @@ from drivers.atomic import atomic_write_bytes
 from drivers.errors import RigError
 
 from ..provenance import json_default
+from .linearity import linearize
 
 FORMAT = "sssrig-calibration"
 SCHEMA_VERSION = 1
@@ -353,8 +354,6 @@ class Calibration:
 
     def linearizer(self) -> Callable[[npt.ArrayLike], npt.NDArray[np.float64]]:
         """A function mapping ``load_linear`` values (white = 1) to black-corrected, linearized values."""
-        from .radiometry import linearize
-
         if not self.has("radiometry"):
             return lambda v: np.asarray(v, float)
         r = self.result("radiometry")
