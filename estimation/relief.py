@@ -50,7 +50,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .dipole import hankel_transform, reduced_albedo_from_total_reflectance
+from .dipole import reduced_albedo_from_total_reflectance
 
 __all__ = ["RELIEF_PARAMS", "STATUS_CODES", "ReliefFit", "ReliefRegion", "SeedComparison", "compare_seed",
            "exit_normalization", "fit_relief_windows", "summarize_relief", "normal_noise_rad", "parameters_from_l_prime", "normals_from_height"]
@@ -242,27 +242,6 @@ class ReliefRegion:
 # --------------------------------------------------------------------------------------------------------------
 # one window
 # --------------------------------------------------------------------------------------------------------------
-def _mtf_table(alpha_prime: float, eta: float, fdr: str, model: str = "dipole-jensen") -> tuple[Array, Array]:
-    """M as a function of x = k l' for sigma_t' = 1 (x log-spaced; M(0) = 1): the Jensen dipole's closed form
-    (:func:`estimation.dipole.hankel_transform`) or, ``model="mc-table"``, the zeroth-order Hankel transform of the
-    Monte Carlo table's profile (:mod:`estimation.mc_table`), M(x) = int J0(x rho) dC(rho) / C(inf), summed over the
-    table's cumulative C on 2400 log-spaced radii from 1e-3 to 1e4 transport mean free paths (the mass inside
-    1e-3 counted with J0 = 1)."""
-    x = np.concatenate([[0.0], np.logspace(-4, 4, 1200)])
-    if model == "mc-table":
-        from scipy.special import j0
-
-        from .mc_table import default_table
-        rho = np.logspace(-3, 4, 2400)
-        C = default_table().cumulative(rho, alpha_prime, 1.0 - alpha_prime, eta, out_of_range="clip")
-        dC = np.diff(C)
-        mid = np.sqrt(rho[1:] * rho[:-1])
-        M = (C[0] + j0(x[:, None] * mid[None, :]) @ dC) / C[-1]
-        return x, np.asarray(M, dtype=np.float64)
-    R = hankel_transform(x, alpha_prime, 1.0 - alpha_prime, eta, fdr=fdr)
-    return x, np.asarray(R / R[0], dtype=np.float64)
-
-
 def _alpha_from_rd(R_d: float, eta: float, fdr: str, model: str) -> float:
     """alpha' of a half-space of total diffuse reflectance R_d: the Jensen dipole's (science.md sec. 1) or the Monte
     Carlo table's (:meth:`estimation.mc_table.McProfileTable.invert_albedo`)."""

@@ -61,13 +61,33 @@ def alpha_from_rd_many(R_d: Array, eta: float, fdr: str, model: str) -> Array:
     return 1.0 - s * s / 3.0
 
 
+def _mtf_table(alpha_prime: float, eta: float, fdr: str, model: str = "dipole-jensen") -> tuple[Array, Array]:
+    """M as a function of x = k l' for sigma_t' = 1 (x log-spaced; M(0) = 1): the Jensen dipole's closed form
+    (:func:`estimation.dipole.hankel_transform`) or, ``model="mc-table"``, the zeroth-order Hankel transform of the
+    Monte Carlo table's profile (:mod:`estimation.mc_table`), M(x) = int J0(x rho) dC(rho) / C(inf), summed over the
+    table's cumulative C on 2400 log-spaced radii from 1e-3 to 1e4 transport mean free paths (the mass inside
+    1e-3 counted with J0 = 1)."""
+    x = np.concatenate([[0.0], np.logspace(-4, 4, 1200)])
+    if model == "mc-table":
+        from scipy.special import j0
+
+        from .mc_table import default_table
+        rho = np.logspace(-3, 4, 2400)
+        C = default_table().cumulative(rho, alpha_prime, 1.0 - alpha_prime, eta, out_of_range="clip")
+        dC = np.diff(C)
+        mid = np.sqrt(rho[1:] * rho[:-1])
+        M = (C[0] + j0(x[:, None] * mid[None, :]) @ dC) / C[-1]
+        return x, np.asarray(M, dtype=np.float64)
+    R = hankel_transform(x, alpha_prime, 1.0 - alpha_prime, eta, fdr=fdr)
+    return x, np.asarray(R / R[0], dtype=np.float64)
+
+
 def mtf_tables(alphas: Array, eta: float, fdr: str, model: str) -> tuple[Array, Array]:
     """(x, M) with M (n, len(x)) the modulation transfer of each alpha' as a function of x = k l' (sigma_t' = 1),
-    the table of :func:`estimation.relief._mtf_table` for every alpha' at once (Jensen: closed form, vectorized;
+    the table of :func:`_mtf_table` for every alpha' at once (Jensen: closed form, vectorized;
     ``mc-table``: one Hankel sum per alpha')."""
     a = np.asarray(alphas, dtype=np.float64).reshape(-1, 1)
     if model == "mc-table":
-        from .relief import _mtf_table
         return _X_TABLE, np.stack([_mtf_table(float(v), eta, fdr, model)[1] for v in a[:, 0]]) if a.size else \
             np.empty((0, _X_TABLE.size))
     R = hankel_transform(_X_TABLE[None, :], a, 1.0 - a, eta, fdr=fdr)

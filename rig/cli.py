@@ -306,6 +306,9 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     if args.what == "single-image":
         from rig.estimate.scenes import run_cli as run_scene  # a scene file a user brings (docs/scene-file.md)
         return run_scene(args)
+    if args.what == "batch":
+        from rig.estimate.batch import run_cli as run_batch  # many items on Dask (docs/scale-out.md)
+        return run_batch(args)
     if args.what == "gradients":
         from rig.estimate.capture_folder import run_cli as run_folder  # a capture folder (docs/capture-folder.md)
         return run_folder(args)
@@ -530,6 +533,37 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--reference-seed", type=_int_at_least(0), default=None, metavar="S",
                    help="--reference: seed of every reference render (default 1)")
     q.add_argument("--json", action="store_true", help="print the summary as JSON instead of a table")
+    q = esub.add_parser("batch", help="many sessions, scene files and capture folders on Dask workers "
+                        "(docs/scale-out.md)")
+    q.add_argument("items", type=Path, nargs="+", metavar="ITEM",
+                   help="session folders, scene files (.toml) and capture folders, in any mix")
+    where = q.add_mutually_exclusive_group()
+    where.add_argument("--workers", type=_int_at_least(0), default=2, metavar="N",
+                       help="local worker processes, one thread each (default 2; 0: serial, in this process)")
+    where.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                       help="a running Dask scheduler (tcp://host:8786) instead of a local cluster")
+    q.add_argument("--out", type=Path, default=Path("batch-out"),
+                   help="output folder: one sub-folder per item, batch.json (default ./batch-out)")
+    q.add_argument("--model", choices=["dipole-jensen", "dipole-better", "mc-table", "mc-table+reference"],
+                   default=None, help="scene files: profile model (default: each scene's [material].model)")
+    q.add_argument("--method", choices=["direct", "tikhonov", "pinv"], default=None,
+                   help="scene files: solver (default: each scene's [estimation].method)")
+    q.add_argument("--reference", action="store_true",
+                   help="capture folders: also the Monte Carlo corrected sphere summary")
+    q.add_argument("--reference-spp", type=_int_at_least(2), default=None, metavar="N",
+                   help="Monte Carlo paths per pixel of each reference render (scenes and --reference)")
+    q.add_argument("--reference-iterations", type=_int_at_least(1), default=None, metavar="K",
+                   help="at most K reference renders per item")
+    q.add_argument("--reference-seed", type=_int_at_least(0), default=None, metavar="S",
+                   help="seed of the reference renders (the same on any number of workers)")
+    q.add_argument("--format", choices=["exr", "tiff"], default="exr", help="capture folders: map file format")
+    q.add_argument("--calibration", type=Path, default=None, metavar="FILE",
+                   help="sessions: calibration file (default: the one each manifest records)")
+    q.add_argument("--render-chunk-rows", type=_int_at_least(0), default=0, metavar="ROWS",
+                   help="scene files: split each Monte Carlo reference render into chunks of ROWS rows across the "
+                        "workers (the same numbers; helps when there are fewer items than workers; 0: whole renders)")
+    q.add_argument("--no-progress", action="store_true", help="no progress bar (the per-item lines stay)")
+    q.add_argument("--json", action="store_true", help="print the batch report as JSON")
     p.set_defaults(func=_cmd_estimate)
 
     from rig.calibration.cli import add_parser as add_calibrate

@@ -8,7 +8,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy import stats
 
-from estimation.relief import (_N_GRID, RELIEF_PARAMS, ReliefFit, _alpha_from_rd, _derived_interval, _mtf_table,
+from estimation.relief_windows import _mtf_table
+from estimation.relief import (_N_GRID, RELIEF_PARAMS, ReliefFit, _alpha_from_rd, _derived_interval,
                                _window_origins, exit_normalization, normal_noise_rad, parameters_from_l_prime)
 from estimation.dipole import reduced_albedo_from_total_reflectance  # noqa: I001
 

@@ -18,8 +18,10 @@ sphere observables with the same map computation, region and summary as the obse
 """
 from __future__ import annotations
 
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import numpy as np
 from numpy.typing import NDArray
@@ -31,7 +33,22 @@ from estimation.single_image import Patches
 
 from rig.estimate.pixel_map import sample_at_points
 
-__all__ = ["MonteCarloReference", "GradientsMonteCarloReference"]
+__all__ = ["MonteCarloReference", "GradientsMonteCarloReference", "render_with"]
+
+#: the render function :class:`MonteCarloReference` calls (None: :func:`simulators.mc.render`); set by
+#: :func:`render_with`, e.g. by ``rig.estimate.batch`` to split each render into row chunks across Dask workers
+_RENDER: ContextVar[Callable[..., Any] | None] = ContextVar("rig_mc_reference_render", default=None)
+
+
+@contextmanager
+def render_with(fn: Callable[..., Any] | None) -> Iterator[None]:
+    """Within the block, :class:`MonteCarloReference` renders with ``fn`` (the signature of
+    :func:`simulators.mc.render`; it must return the same image, e.g. the same render in chunks of rows)."""
+    token = _RENDER.set(fn)
+    try:
+        yield
+    finally:
+        _RENDER.reset(token)
 
 
 @dataclass
@@ -79,8 +96,9 @@ class MonteCarloReference:
         ssp = np.atleast_1d(np.asarray(sigma_s_prime_per_mm, dtype=np.float64))
         sa = np.atleast_1d(np.asarray(sigma_a_per_mm, dtype=np.float64))
         media = [Medium.from_reduced(float(s), float(a), g=self.g, eta=float(eta)) for s, a in zip(ssp, sa)]
-        img = render(self.shape, media, self.camera, self.lights, spp=int(self.spp), seed=int(seed),
-                     derivatives=self.derivatives, fd_log_sigma_s=self.fd_log_sigma_s)
+        fn = _RENDER.get() or render
+        img = fn(self.shape, media, self.camera, self.lights, spp=int(self.spp), seed=int(seed),
+                 derivatives=self.derivatives, fd_log_sigma_s=self.fd_log_sigma_s)
         valid = img.mask if self.valid_px is None else img.mask & np.asarray(self.valid_px, dtype=bool)
         valid = np.broadcast_to(valid[..., None], img.radiance.shape)
         obs, sig = sample_at_points(img.radiance, img.stderr ** 2, valid, self.camera, self.patches.centers_mm,

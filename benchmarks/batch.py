@@ -1,0 +1,160 @@
+"""Benchmark of ``rig estimate batch`` on Dask (rig/estimate/batch.py, issue 19 item 3; docs/scale-out.md).
+
+Eight scene files of the scene zoo (benchmarks/zoo: the CI subset's 48 x 48 px Monte Carlo frames, ``quick_subset(
+draw_zoo(), 8)``), each estimated with ``mc-table+reference`` (a Monte Carlo reference render per iteration), as
+one batch on a LocalCluster of 1 worker process and then of 2 (one thread each, rig.estimate.batch.WORKER_ENV). Printed, all
+from one run:
+
+- per worker count: cluster start + warm-up (every worker imports the estimators and loads numba's cached kernels
+  before the clock of the batch starts), the batch's wall time, the sum of the items' seconds on the workers;
+- the speed-up = wall(1 worker) / wall(2 workers) (anchor: the 1-worker batch of the same run; target >= 1.7),
+  the CPU seconds the items got per wall second ("cores got": on a machine shared with other jobs, what the
+  workers were given; its 2-vs-1 ratio says how much more CPU two workers got than one), and
+  whether the two batches' result digests (rig.estimate.batch.result_digest: every number of every result, without
+  timings) are bit-identical; with ``--serial`` also the in-process serial run's digests;
+- the per-task costs behind docs/scale-out.md's predictions: median item seconds, Dask's overhead per task (200
+  no-op tasks on the 2-worker cluster), the content hash of an item, and the load average before and after.
+
+Run: ``python benchmarks/batch.py [--spp N] [--iterations K] [--serial] [--json]`` (defaults 8 spp, 2 iterations:
+~3-6 min on 2 idle cores; the 8 scenes are rendered once into benchmarks/out/zoo, ~10 s after numba's cache).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+sys.path.insert(0, str(HERE))
+
+from rig.estimate.batch import BatchOptions, classify_item, content_sha256, local_cluster, run_batch  # noqa: E402
+
+
+def _warm() -> int:
+    """Imports of the single-image reference path and numba's cached render kernels (a 4 x 4 px, 2-spp render of a
+    sphere under a point light), run on every worker before the batch's clock starts."""
+    import numpy as np
+
+    import rig.estimate.scenes  # noqa: F401
+    import rig.estimate.reference.scene_reference  # noqa: F401
+    from estimation.camera import PinholeCamera
+    from estimation.single_image import PointLights
+    from simulators.mc import Medium, Sphere, render
+
+    cam = PinholeCamera(4, 4, 8.0, 8.0, 2.0, 2.0, ((1, 0, 0), (0, 0, -1), (0, 1, 0)), (0.0, -100.0, 0.0))
+    render(Sphere((0.0, 0.0, 0.0), 10.0), Medium.from_reduced(1.0, 0.01, eta=1.3), cam,
+           PointLights(np.array([[0.0, -200.0, 100.0]]), np.array([1.0])), spp=2, derivatives=True,
+           fd_log_sigma_s=0.1)
+    return os.getpid()
+
+
+def _noop(i: int) -> int:
+    return i
+
+
+def scenes(n: int) -> list[Path]:
+    from zoo.frames import build_scene
+    from zoo.scenes import draw_zoo, quick_subset, quick_variant
+
+    specs = quick_subset(draw_zoo(), n)[:n]
+    return [build_scene(quick_variant(s), HERE / "out" / "zoo")[0] / "scene.toml" for s in specs]
+
+
+def run_workers(items: list[Path], opts: BatchOptions, workers: int, out: Path) -> dict[str, Any]:
+    from distributed import Client
+
+    t0 = time.perf_counter()
+    with local_cluster(workers) as cluster, Client(cluster) as client:
+        client.wait_for_workers(workers, timeout=300)
+        client.run(_warm)
+        t_start = time.perf_counter() - t0
+        load0 = os.getloadavg()
+        t1 = time.perf_counter()
+        rep = run_batch(items, out, options=opts, client=client)
+        wall = time.perf_counter() - t1
+        load1 = os.getloadavg()
+        overhead = None
+        if workers > 1:
+            t2 = time.perf_counter()
+            client.gather(client.map(_noop, range(200), pure=False))
+            overhead = (time.perf_counter() - t2) / 200
+    assert rep.ok, [r for r in rep.records if r["status"] == "failed"]
+    return {"workers": workers, "start_and_warm_s": t_start, "wall_s": wall,
+            "item_seconds": {r["key"]: r["seconds"] for r in rep.records},
+            "item_cpu_seconds": {r["key"]: r["cpu_seconds"] for r in rep.records},
+            "digests": {r["key"]: r["digest"] for r in rep.records},
+            "worker_pids": sorted({r["worker_pid"] for r in rep.records}),
+            "load_before": load0, "load_after": load1, "dask_overhead_per_task_s": overhead}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--items", type=int, default=8)
+    ap.add_argument("--spp", type=int, default=8, help="reference spp (default 8)")
+    ap.add_argument("--iterations", type=int, default=2, help="reference iterations (default 2)")
+    ap.add_argument("--serial", action="store_true", help="also the in-process serial run (workers=0)")
+    ap.add_argument("--json", action="store_true")
+    args = ap.parse_args(argv)
+    items = scenes(args.items)
+    opts = BatchOptions(model="mc-table+reference", reference_spp=args.spp, reference_iterations=args.iterations,
+                        reference_seed=19)
+    t = time.perf_counter()
+    for p in items:
+        content_sha256(classify_item(p))
+    hash_s = (time.perf_counter() - t) / len(items)
+    runs: dict[int, dict[str, Any]] = {}
+    serial: dict[str, Any] | None = None
+    with tempfile.TemporaryDirectory(prefix="batch-bench-") as tmp:
+        for w in (1, 2):
+            print(f"# {w} worker(s) ...", file=sys.stderr, flush=True)
+            runs[w] = run_workers(items, opts, w, Path(tmp) / f"w{w}")
+        if args.serial:
+            print("# serial (in process) ...", file=sys.stderr, flush=True)
+            t = time.perf_counter()
+            rep = run_batch(items, Path(tmp) / "serial", options=opts, workers=0)
+            serial = {"wall_s": time.perf_counter() - t, "digests": {r["key"]: r["digest"] for r in rep.records}}
+    one, two = runs[1], runs[2]
+    speedup = one["wall_s"] / two["wall_s"]
+    identical = one["digests"] == two["digests"]
+    item_s = list(one["item_seconds"].values())
+    doc = {"items": len(items), "reference_spp": args.spp, "reference_iterations": args.iterations,
+           "runs": {str(k): {kk: vv for kk, vv in v.items() if kk != "digests"} for k, v in runs.items()},
+           "speedup_2_vs_1": speedup, "target": 1.7, "bit_identical_1_vs_2": identical,
+           "bit_identical_serial": None if serial is None else serial["digests"] == one["digests"],
+           "serial_wall_s": None if serial is None else serial["wall_s"],
+           "median_item_s_1_worker": statistics.median(item_s), "content_hash_s_per_item": hash_s,
+           "dask_overhead_per_task_s": two["dask_overhead_per_task_s"], "cpu_count": os.cpu_count(),
+           "cpu_rate_ratio_2_vs_1": (sum(two["item_cpu_seconds"].values()) / two["wall_s"])
+           / (sum(one["item_cpu_seconds"].values()) / one["wall_s"])}
+    if args.json:
+        print(json.dumps(doc, indent=2))
+        return 0
+    print(f"# rig estimate batch: {len(items)} zoo scene files, mc-table+reference, {args.spp} spp, "
+          f"{args.iterations} iteration(s); {os.cpu_count()} cores")
+    print(f"{'workers':>7} {'start+warm s':>12} {'batch wall s':>12} {'sum item s':>10} {'sum item CPU s':>14} "
+          f"{'cores got':>9} {'load before':>16} {'load after':>16}")
+    for w, r in runs.items():
+        lb = "/".join(f"{x:.1f}" for x in r["load_before"])
+        la = "/".join(f"{x:.1f}" for x in r["load_after"])
+        cpu = sum(r["item_cpu_seconds"].values())
+        print(f"{w:>7} {r['start_and_warm_s']:>12.1f} {r['wall_s']:>12.1f} {sum(r['item_seconds'].values()):>10.1f} "
+              f"{cpu:>14.1f} {cpu / r['wall_s']:>9.2f} {lb:>16} {la:>16}")
+    print(f"speed-up 2 vs 1 workers: {speedup:.2f}x (target >= 1.7: {'met' if speedup >= 1.7 else 'NOT met'}); "
+          f"CPU-time speed-up (item CPU s per wall s, 2 vs 1): {doc['cpu_rate_ratio_2_vs_1']:.2f}x")
+    print(f"bit-identical 1 vs 2 workers: {identical}")
+    if serial is not None:
+        print(f"bit-identical serial (in process, {serial['wall_s']:.1f} s) vs workers: {doc['bit_identical_serial']}")
+    print(f"per task: median item {doc['median_item_s_1_worker']:.2f} s (1 worker), Dask overhead "
+          f"{1e3 * doc['dask_overhead_per_task_s']:.1f} ms, content hash {1e3 * hash_s:.1f} ms")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
