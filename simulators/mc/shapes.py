@@ -2,8 +2,8 @@
 
 Every shape is reduced to a :class:`Geometry` record of plain arrays for the numba kernels:
 ``kind`` (one of :data:`HALF_SPACE`, :data:`SLAB`, :data:`SPHERE`, :data:`BOX`, :data:`MESH`), float ``params``,
-and for meshes a bounding-volume hierarchy (median split on the longest centroid axis, leaves of <= 4 triangles)
-built here in numpy and traversed by :func:`nearest_hit` in numba (no trimesh/embree call inside the walk).
+and for meshes a bounding-volume hierarchy (binned SAH, leaves of <= 4 triangles, :mod:`.bvh`)
+built in numba and traversed by :func:`nearest_hit` in numba (no trimesh/embree call inside the walk).
 
 :func:`nearest_hit` is the one query the kernels need: the first crossing of the boundary along a ray with
 t > eps_t, from inside or outside, with the *outward* unit normal there (:func:`nearest_hit_below`: the same when
@@ -23,6 +23,8 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit
 
+from .bvh import build_bvh
+
 __all__ = ["HALF_SPACE", "SLAB", "SPHERE", "BOX", "MESH", "Geometry", "HalfSpace", "Slab", "Sphere", "Box",
            "Mesh", "Shape", "nearest_hit", "surface_distance", "convex_polyhedron", "convex_face_table",
            "FACE_TABLE_START", "STACK_SIZE", "plane_table", "MAX_CONNECTION_PLANES", "PLANE_TABLE", "BVH_CONNECTIONS",
@@ -41,7 +43,7 @@ class Geometry(NamedTuple):
     kind: int
     params: FloatArray          # (8,); convex meshes: (8 + ...,) the face table of :func:`convex_face_table`
     nodes_box: FloatArray       # (N, 6) min xyz, max xyz (meshes; (1, 6) dummy otherwise)
-    nodes_idx: npt.NDArray[np.int64]  # (N, 4) left, right, first triangle, triangle count (count > 0: leaf)
+    nodes_idx: npt.NDArray[np.int64]  # (N, 4) left, right, first triangle (inner: split axis), count (> 0: leaf)
     triangles: FloatArray       # (M, 12) v0, e1 = v1 - v0, e2 = v2 - v0, outward unit normal
     eps_t: float                # minimum hit distance
     nudge: float                # offset along the normal after a boundary event
@@ -136,52 +138,6 @@ class Box:
     def contains(self, points_mm: npt.ArrayLike) -> npt.NDArray[np.bool_]:
         p = np.asarray(points_mm, float)
         return np.all((p >= np.asarray(self.min_mm)) & (p <= np.asarray(self.max_mm)), axis=-1)
-
-
-def build_bvh(vertices: FloatArray, faces: npt.NDArray[np.int64], leaf_size: int = 4
-              ) -> tuple[FloatArray, npt.NDArray[np.int64], FloatArray]:
-    """Median-split BVH over triangles: (nodes_box (N, 6), nodes_idx (N, 4), triangles (M, 12)) in traversal
-    order (node 0 is the root; triangles reordered so that every leaf owns a contiguous range)."""
-    tri = np.asarray(vertices, float)[np.asarray(faces)]            # (M, 3, 3)
-    if len(tri) == 0:
-        raise ValueError("mesh has no faces")
-    cent = tri.mean(axis=1)
-    lo_t, hi_t = tri.min(axis=1), tri.max(axis=1)
-    order = np.arange(len(tri))
-    boxes: list[np.ndarray] = []
-    idx: list[list[int]] = []
-    # iterative build: (node id, start, end) over the permutation ``order``
-    boxes.append(np.zeros(6))
-    idx.append([-1, -1, 0, 0])
-    todo = [(0, 0, len(tri))]
-    while todo:
-        node, s, e = todo.pop()
-        sel = order[s:e]
-        boxes[node] = np.concatenate([lo_t[sel].min(axis=0), hi_t[sel].max(axis=0)])
-        if e - s <= leaf_size:
-            idx[node] = [-1, -1, s, e - s]
-            continue
-        c = cent[sel]
-        axis = int(np.argmax(c.max(axis=0) - c.min(axis=0)))
-        mid = (e - s) // 2
-        part = np.argpartition(c[:, axis], mid)
-        order[s:e] = sel[part]
-        left = len(boxes)
-        boxes.append(np.zeros(6))
-        idx.append([-1, -1, 0, 0])
-        right = len(boxes)
-        boxes.append(np.zeros(6))
-        idx.append([-1, -1, 0, 0])
-        idx[node] = [left, right, 0, 0]
-        todo.append((left, s, s + mid))
-        todo.append((right, s + mid, e))
-    t = tri[order]
-    e1 = t[:, 1] - t[:, 0]
-    e2 = t[:, 2] - t[:, 0]
-    n = np.cross(e1, e2)
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
-    tris = np.concatenate([t[:, 0], e1, e2, n], axis=1)
-    return np.asarray(boxes), np.asarray(idx, dtype=np.int64), np.ascontiguousarray(tris)
 
 
 def _unit_face_normals(vertices: npt.ArrayLike, faces: npt.ArrayLike
@@ -534,8 +490,15 @@ def _hit_mesh_below(nbox, nidx, tris, ox, oy, oz, dx, dy, dz, eps_t, stack, t_ma
                     bn0, bn1, bn2 = tris[k, 9], tris[k, 10], tris[k, 11]
         else:
             if sp + 2 <= stack.shape[0]:
-                stack[sp] = nidx[node, 0]
-                stack[sp + 1] = nidx[node, 1]
+                # the child nearer along the split axis is popped first: its hits shrink ``best`` early
+                ax = nidx[node, 2]
+                dax = dx if ax == 0 else (dy if ax == 1 else dz)
+                if dax < 0.0:
+                    stack[sp] = nidx[node, 0]
+                    stack[sp + 1] = nidx[node, 1]
+                else:
+                    stack[sp] = nidx[node, 1]
+                    stack[sp + 1] = nidx[node, 0]
                 sp += 2
     if not found:
         return _INF, 0.0, 0.0, 0.0
