@@ -37,6 +37,7 @@ from simulators.led_sphere import LedSphereModel  # noqa: E402
 from simulators.led_sphere_modbus import LedSphereModbusSim  # noqa: E402
 from simulators.serve import serve  # noqa: E402
 from simulators.trigger import EsperTriggerModel  # noqa: E402
+from rig.files.provenance import write_json  # noqa: E402
 
 CAMERA_BURST_FPS = 5.0          # a typical DSLR/mirrorless burst rate
 # Generous limits: this measures timing, not the safety checks (a full-on pattern of 343 LEDs draws
@@ -173,7 +174,7 @@ def main(argv: list[str] | None = None) -> int:
         print(render(results, meta))
         print(f"\n({meta['wall_s']:.1f} s, {shots} trigger shots)")
         if args.json:
-            Path(args.json).write_text(json.dumps(payload, indent=1))
+            write_json(args.json, payload, indent=1)
     return 0
 
 

@@ -67,6 +67,7 @@ from estimation.diffusion import estimate_sphere, sphere_albedo, sphere_shorteni
 from estimation.fresnel import fresnel_transmittance  # noqa: E402
 from estimation.gradients import LedRig, build_response_lut, compute_maps  # noqa: E402
 from rig.acquire.geometry import led_layout  # noqa: E402
+from rig.files.provenance import write_json  # noqa: E402
 
 ETA = 1.3
 RADIUS_MM = 10.0
@@ -466,11 +467,10 @@ def main(argv: list[str] | None = None) -> int:
                   "faster as the reference; the sphere pipeline's workers skipped: --relief-only)")
             ok = print_relief(relief, mpx, max(floor_mps), frame_set)
             if args.json:
-                args.json.write_text(json.dumps({"width_px": W, "height_px": H, "megapixels": mpx,
-                                                 "frames": n_frames, "frame_set_bytes": frame_set,
-                                                 "floor_read_mps": floor_mps, "targets_met": {"relief_memory": ok},
-                                                 "runs": {"floor1": floor1, "floor2": floor2, "relief": relief}},
-                                                indent=1, default=float))
+                write_json(args.json, {"width_px": W, "height_px": H, "megapixels": mpx, "frames": n_frames,
+                                       "frame_set_bytes": frame_set, "floor_read_mps": floor_mps,
+                                       "targets_met": {"relief_memory": ok},
+                                       "runs": {"floor1": floor1, "floor2": floor2, "relief": relief}}, indent=1)
             return 0
         pipe = spawn("pipeline", folder, args)
         floor2 = spawn("floor", folder, args)
@@ -535,7 +535,7 @@ def main(argv: list[str] | None = None) -> int:
               "runs": {"floor1": floor1, "pipeline": pipe, "floor2": floor2, "write": write, "trace": trace,
                        "ram": ram, "relief": relief}}
     if args.json:
-        args.json.write_text(json.dumps(result, indent=1, default=float))
+        write_json(args.json, result, indent=1)
     return 0
 
 

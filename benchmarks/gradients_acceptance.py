@@ -52,6 +52,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import numpy as np  # noqa: E402
 
 from benchmarks.gradients_cases import Case, build_case, truth, with_normals_file  # noqa: E402
+from rig.files.provenance import write_json  # noqa: E402
 
 CHANNELS = "RGB"
 RELIEF_MATERIALS = ("marble", "skin1", "apple", "skimmilk", "ketchup")
@@ -322,9 +323,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\ntotal {total:.1f} s (render {sum(m['render_seconds'] for m in res['metas'].values() if not m['cached']):.1f}"
           f" s of it new; load {os.getloadavg()[0]:.2f})")
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"cases": [asdict(c) for c in cases], **res, "seconds_total": total},
-                                        indent=1, default=float))
+        write_json(args.json, {"cases": [asdict(c) for c in cases], **res, "seconds_total": total}, indent=1)
     return 0
 
 

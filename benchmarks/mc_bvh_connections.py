@@ -27,7 +27,6 @@ Run: ``python benchmarks/mc_bvh_connections.py [--quick] [--json out.json]`` (mi
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import sys
@@ -48,6 +47,7 @@ from simulators.mc import Medium, Mesh, Sphere, render  # noqa: E402
 from simulators.mc.optics import fresnel_r  # noqa: E402
 from simulators.mc.shapes import BVH_CONNECTIONS  # noqa: E402
 from simulators.scene import wall_on_slab_mesh  # noqa: E402
+from rig.files.provenance import write_json  # noqa: E402
 from zoo.nonconvex import u_channel_mesh  # noqa: E402
 
 
@@ -220,7 +220,7 @@ def main(argv: list[str] | None = None) -> int:
                                4 if q else 12, 8, 0.5 if q else 0.4)
     print(f"# run {time.perf_counter() - t0:.0f} s; load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     if a.json:
-        Path(a.json).write_text(json.dumps(out, indent=1, default=float))
+        write_json(a.json, out, indent=1)
     return 0
 
 

@@ -42,7 +42,6 @@ materials, 32 x 32 px at 128 spp, 4 reference iterations: 336 s measured on 2 sh
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
@@ -67,6 +66,7 @@ from rig.estimate.reference.mc_reference import GradientsMonteCarloReference  # 
 from simulators.camera import SensorModel  # noqa: E402
 from simulators.mc_capture import MCSettings  # noqa: E402
 from simulators.scene import SphereObject, render_gradient_capture  # noqa: E402
+from rig.files.provenance import write_json  # noqa: E402
 
 ETA = 1.3
 # science.md sec. 2 (pbrt's units: reduced sigma_s', sigma_a in 1/mm); rig.config holds all but spectralon
@@ -430,7 +430,7 @@ def main(argv: list[str] | None = None) -> int:
                "materials": {k: {"sigma_s_prime_per_mm": MATERIALS[k][0], "sigma_a_per_mm": MATERIALS[k][1], **v}
                              for k, v in infos.items()},
                "rows": rows}
-        args.json.write_text(json.dumps(out, indent=1, default=float))
+        write_json(args.json, out, indent=1)
     return 0
 
 

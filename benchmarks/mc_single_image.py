@@ -53,6 +53,7 @@ from estimation.model_correction import estimate_with_reference  # noqa: E402
 from estimation.single_image import PointLights, estimate_single_image, patches_from_mesh, predict_radiance  # noqa: E402
 from rig.estimate.pixel_map import pixel_faces, sample_at_points  # noqa: E402
 from rig.estimate.reference.mc_reference import MonteCarloReference  # noqa: E402
+from rig.files.provenance import write_json  # noqa: E402
 
 TRUTH = (2.19, 0.002)          # marble-R (seed Table 1)
 ETA = 1.3
@@ -267,7 +268,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"total {out['seconds_total']:.1f} s")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(out, indent=1, default=float))
+        write_json(args.json, out, indent=1)
     return 0
 
 

@@ -66,6 +66,7 @@ from estimation.single_image import (EnvironmentMap, PointLights, patch_irradian
                                      patches_from_mesh, predict_radiance)
 from estimation.single_image.geometry import occluded_from  # noqa: E402
 from rig.estimate.pixel_map import pixel_faces  # noqa: E402
+from rig.files.provenance import write_json  # noqa: E402
 
 RADIUS_MM = 30.0
 
@@ -384,7 +385,7 @@ def main(argv: list[str] | None = None) -> int:
     if a.json == "-":
         print(json.dumps(data, indent=1))
     elif a.json:
-        Path(a.json).write_text(json.dumps(data, indent=1))
+        write_json(a.json, data, indent=1)
     return 0
 
 

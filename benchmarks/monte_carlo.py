@@ -33,6 +33,7 @@ import numba  # noqa: E402
 from estimation.camera import PinholeCamera  # noqa: E402
 from estimation.single_image import PointLights  # noqa: E402
 from simulators.mc import GradientPattern, Medium, Sphere, pencil_beam_profile, render  # noqa: E402
+from rig.files.provenance import write_json  # noqa: E402
 
 MARBLE_R = Medium.from_reduced(2.19, 0.0021, g=0.0, eta=1.3)
 SPHERE = Sphere((0.0, 0.0, 0.0), 30.0)
@@ -102,7 +103,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{r['paths_per_s']:.3g} | {r['collisions_per_path']:.0f} | {r['rel_stderr_median']:.3f} | "
               f"{r['rel_stderr_p90']:.3f} |")
     if args.json:
-        Path(args.json).write_text(json.dumps(out, indent=1))
+        write_json(args.json, out, indent=1)
     return 0
 
 

@@ -53,7 +53,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import io
-import json
 import os
 import sys
 import tempfile
@@ -66,8 +65,7 @@ from typing import Any, Iterator
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from drivers.atomic import atomic_write_bytes  # noqa: E402
-from rig.files.provenance import json_default  # noqa: E402
+from rig.files.provenance import write_json  # noqa: E402
 from zoo.frames import build_scene, default_root  # noqa: E402
 from zoo.rules import REFERENCE_MODEL, acceptance, evaluate, worst_sigma_s  # noqa: E402
 from zoo.nonconvex import draw_nonconvex  # noqa: E402
@@ -331,7 +329,7 @@ def main(argv: list[str] | None = None) -> int:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         doc = {"quick": args.quick, "reference_spp": ref_spp, "reference_iterations": ref_it, "models": models,
                "scenes": scenes, "acceptance": verdict, "seconds": total}
-        atomic_write_bytes(args.json, json.dumps(doc, indent=1, default=json_default).encode())
+        write_json(args.json, doc, indent=1)
     return 0
 
 

@@ -38,7 +38,6 @@ Run: ``python benchmarks/single_image.py [--quick] [--json out.json] [--png out.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -60,6 +59,7 @@ from estimation.mc_table import default_table, exit_radiance_factor  # noqa: E40
 from estimation.single_image import (MODELS_ALL, EnvironmentMap, Patches, PointLights,  # noqa: E402
                                      estimate_single_image,
                                      patch_irradiance, patches_from_mesh, predict_radiance)
+from rig.files.provenance import write_json  # noqa: E402
 
 CAMERA_MM = (0.0, -300.0, 0.0)
 LED_MM = np.array([[300.0, -900.0, 400.0]])
@@ -538,7 +538,7 @@ def main(argv: list[str] | None = None) -> int:
         write_png(args.png, out)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(out, indent=1, default=float))
+        write_json(args.json, out, indent=1)
     print(f"total {out['environment']['seconds_total']:.1f} s")
     return 0
 

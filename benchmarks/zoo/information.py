@@ -53,6 +53,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from estimation.ridge_scan import profile_chi2  # noqa: E402 (the reference loop start's own profile)
+from rig.files.provenance import write_json  # noqa: E402
 from zoo.frames import build_scene, default_root  # noqa: E402
 from zoo.nonconvex import draw_nonconvex  # noqa: E402
 from zoo.scenes import draw_zoo  # noqa: E402
@@ -270,7 +271,7 @@ def main(argv: list[str] | None = None) -> int:
         results.append(scene_profile(i, spp=a.spp, seeds=seeds, factors=factors))
         print(f"z{i:02d} done ({results[-1]['render_seconds']:.0f} s of renders)", file=sys.stderr, flush=True)
         if a.json:
-            Path(a.json).write_text(json.dumps(results, indent=1, default=float))
+            write_json(a.json, results, indent=1)
     print(f"# likelihood profile along sigma_s' (sigma_a scaled with it, then re-optimised); {a.spp} spp x seeds "
           f"{seeds}")
     print_table(results)

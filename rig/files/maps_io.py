@@ -42,7 +42,7 @@ from estimation.diffusion import DiffusionMaps, SeedEstimate
 from estimation.gradients import DerivedMap, GradientMaps
 
 from rig.files.imageio import write_exr, write_float_tiff, write_png8
-from rig.files.provenance import jsonable, sha256_file
+from rig.files.provenance import sha256_file, write_json
 
 __all__ = ["MAPS_FORMAT", "MAPS_FORMAT_VERSION", "SIDECAR", "PREVIEW", "MASKS", "MASK_BITS", "MAP_SPECS",
            "PREVIEW_TILE_PX", "MapSpec", "MapsError", "LoadedMaps", "write_maps", "read_maps", "preview_size_px",
@@ -172,8 +172,7 @@ def select_maps(spec: str | None) -> list[str] | None:
 
 
 def _write_json(path: Path, data: Mapping[str, Any]) -> Path:
-    text = json.dumps(jsonable(data), indent=2, allow_nan=False) + "\n"
-    return atomic_write(path, lambda tmp: tmp.write_text(text))
+    return write_json(path, data, strict=True)
 
 
 def _read_float(path: Path) -> NDArray[np.float32]:

@@ -1,7 +1,8 @@
-"""Small helpers every writer of provenance shares: file hashes and strict JSON from numpy values."""
+"""Small helpers every writer of provenance shares: file hashes, JSON from numpy values, and the one JSON file writer."""
 from __future__ import annotations
 
 import hashlib
+import json
 import math
 import os
 from collections.abc import Mapping
@@ -10,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["sha256_file", "jsonable", "json_default"]
+__all__ = ["sha256_file", "jsonable", "json_default", "write_json"]
 
 
 def sha256_file(path: str | Path) -> str:
@@ -59,3 +60,14 @@ def json_default(o: Any) -> Any:
     if isinstance(o, os.PathLike):
         return os.fspath(o)
     raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def write_json(path: str | os.PathLike[str], obj: Any, *, strict: bool = False, indent: int = 2) -> Path:
+    """Write ``obj`` as JSON to ``path`` atomically (``drivers.atomic``): the one JSON file writer of the rig and the
+    benchmarks. ``strict=False`` keeps numbers as they are (:func:`json_default`; NaN / Infinity as Python's json
+    writes them); ``strict=True`` writes :func:`jsonable` (non-finite floats as null) and refuses NaN."""
+    from drivers.atomic import atomic_write_bytes
+
+    text = (json.dumps(jsonable(obj), indent=indent, allow_nan=False) if strict
+            else json.dumps(obj, indent=indent, default=json_default))
+    return atomic_write_bytes(path, (text + "\n").encode())
