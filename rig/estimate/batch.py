@@ -63,8 +63,10 @@ WORKER_ENV = {"NUMBA_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_TH
 #: Dask settings of the local workers: no MALLOC_TRIM_THRESHOLD_ (the nanny's default 65536 returns freed memory to
 #: the system at once: measured on a zoo scene's reference estimate in a worker, 25x the page faults and 10x the
 #: system time of the same estimate in a plain process), no statistical profiler (it samples every thread's stack
-#: every 10 ms)
-NANNY_CONFIG = {"distributed.nanny.pre-spawn-environ": {}, "distributed.worker.profile.enabled": False}
+#: every 10 ms), and WORKER_ENV in the pre-spawn environment: the nanny's ``env`` is applied only after the worker
+#: process has imported numpy, whose OpenBLAS then keeps a second thread spinning (measured in a 1-worker cluster:
+#: 4.9 CPU s of a blas_thread_server thread beside 11.2 s of the task's, found with gdb; after: 11.1 CPU s in 10.9 s)
+NANNY_CONFIG = {"distributed.nanny.pre-spawn-environ": dict(WORKER_ENV), "distributed.worker.profile.enabled": False}
 #: result keys that differ between two runs of the same inputs (timings, timestamps, where outputs were written)
 _VOLATILE = re.compile(r"seconds|^created$|^paths_per_s$|^out_dir$|^files$|^elapsed")
 #: output files whose bytes are part of an item's digest (the maps; sidecars and previews hold paths and times)
@@ -424,13 +426,17 @@ def run_batch(items: Sequence[str | os.PathLike[str]], out_dir: str | os.PathLik
 
     try:
         if todo and client is None and scheduler is None and workers == 0:
-            for it in todo:
-                try:
-                    rec = run_item(it, opts.for_kind(it.kind), out, shas[it.key], opts.render_chunk_rows)
-                except Exception as exc:  # noqa: BLE001 - one failed item does not stop the batch
-                    finished(it, None, exc)
-                else:
-                    finished(it, rec, None)
+            from threadpoolctl import threadpool_limits
+
+            # one BLAS thread, as in the workers (WORKER_ENV): a reduction's order, hence its last bits, depends on it
+            with threadpool_limits(limits=1):
+                for it in todo:
+                    try:
+                        rec = run_item(it, opts.for_kind(it.kind), out, shas[it.key], opts.render_chunk_rows)
+                    except Exception as exc:  # noqa: BLE001 - one failed item does not stop the batch
+                        finished(it, None, exc)
+                    else:
+                        finished(it, rec, None)
         elif todo:
             _run_distributed(todo, opts, out, shas, client, scheduler, workers, finished, say)
     finally:
