@@ -46,8 +46,9 @@ from typing import Any, Callable, Iterable, Literal, Sequence
 
 import numpy as np
 
-from drivers.atomic import atomic_write_bytes, fsync_dir
+from drivers.atomic import fsync_dir
 from drivers.errors import ConfigError
+from rig.files.provenance import json_default, write_json
 
 __all__ = ["BatchItem", "BatchOptions", "BatchReport", "classify_item", "content_sha256", "result_digest",
            "run_item", "run_batch", "chunked_render", "local_cluster", "WORKER_ENV", "DONE_FILE", "RESULT_FILE"]
@@ -236,7 +237,6 @@ def _strip_volatile(o: Any) -> Any:
 def result_digest(result: dict[str, Any], files: Sequence[Path] = ()) -> str:
     """SHA-256 of a result without its volatile keys (timings, timestamps, output paths: ``_VOLATILE``) and of the
     bytes of ``files``: equal digests are bit-identical estimates (every float printed with repr precision)."""
-    from rig.files.provenance import json_default
     h = hashlib.sha256(json.dumps(_strip_volatile(result), sort_keys=True, default=json_default).encode())
     for f in sorted(files, key=lambda p: p.name):
         _hash_file(h, f, f.name)
@@ -329,7 +329,6 @@ def run_item(item: BatchItem, options: dict[str, Any], out_dir: str | os.PathLik
     from functools import partial
 
     from rig.estimate.reference.mc_reference import render_with
-    from rig.files.provenance import json_default
     from rig.files.session import software_version
 
     t0, c0 = time.perf_counter(), time.process_time()
@@ -339,8 +338,7 @@ def run_item(item: BatchItem, options: dict[str, Any], out_dir: str | os.PathLik
     folder.mkdir(parents=True)
     with render_with(partial(chunked_render, chunk_rows=chunk_rows) if chunk_rows > 0 else None):
         result, files = _estimate(item, options, folder)
-    atomic_write_bytes(folder / RESULT_FILE,
-                       (json.dumps(result, indent=2, default=json_default) + "\n").encode(), overwrite=True)
+    write_json(folder / RESULT_FILE, result)
     record = {"format": MARKER_FORMAT, "format_version": 1, "key": item.key, "kind": item.kind,
               "item": str(item.path), "content_sha256": sha, "options": options,
               "options_sha256": _options_sha256(options), "digest": result_digest(result, files),
@@ -348,7 +346,7 @@ def run_item(item: BatchItem, options: dict[str, Any], out_dir: str | os.PathLik
               "seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0,
               "worker_pid": os.getpid(), "host": os.uname().nodename, "software_version": software_version(),
               "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
-    atomic_write_bytes(folder / DONE_FILE, (json.dumps(record, indent=2) + "\n").encode(), overwrite=True)
+    write_json(folder / DONE_FILE, record)
     fsync_dir(folder.parent)
     return record
 
@@ -445,7 +443,7 @@ def run_batch(items: Sequence[str | os.PathLike[str]], out_dir: str | os.PathLik
     order = {it.key: i for i, it in enumerate(resolved)}
     report.records.sort(key=lambda r: order[r["key"]])
     report.seconds = time.perf_counter() - t0
-    atomic_write_bytes(out / BATCH_FILE, (json.dumps(report.to_dict(), indent=2) + "\n").encode(), overwrite=True)
+    write_json(out / BATCH_FILE, report.to_dict())
     return report
 
 
