@@ -298,7 +298,8 @@ def fit_relief_windows(diffuse_normals: ArrayLike, true_normals: ArrayLike, albe
                        albedo_rel_uncertainty: float = 0.1, weak_ratio: float = 4.0, min_relief_snr: float = 2.0,
                        min_relief_rad: float = 2e-3, fdr: str = "fit", exit_norm: float | None = None,
                        model: str = "dipole-jensen", search_step: int = 3, workers: int = 1,
-                       block_bytes: int = 16 << 20) -> ReliefFit:
+                       block_bytes: int = 16 << 20, residual_stderr_rad: ArrayLike | None = None,
+                       min_stderr_rad: float = 1e-4) -> ReliefFit:
     """Fit l' per window and channel from the blur of ``diffuse_normals`` (H, W, 3 channels, 3 xyz) against
     ``true_normals`` (H, W, 3) (known geometry, or the specular normals of the same capture); ``albedo``
     (H, W, 3) is R_d (exit Fresnel divided out, as :func:`estimation.gradients.compute_maps` reports it);
@@ -318,6 +319,13 @@ def fit_relief_windows(diffuse_normals: ArrayLike, true_normals: ArrayLike, albe
     cost on a coarse grid first and refines only where the result depends on it (the minimum and the interval's
     ends; exact where the cost is unimodal on that scale), ``search_step=1`` on the whole grid -- equal to the
     one-window-at-a-time fit to rounding (tests/estimation/test_relief.py).
+
+    ``residual_stderr_rad`` (H, W, 3): the per-pixel standard error (radians, per tangential component) of the
+    residual diffuse - blurred true normal, from the frames' noise (sqrt(sigma_diffuse^2 + sigma_true^2),
+    :mod:`estimation.gradients.uncertainty`; floored at ``min_stderr_rad``; NaN / inf: not used). The fit then
+    weights each pixel by win^2 / sigma^2 and the profile interval uses the stated noise, or the residual where
+    it is larger (:func:`estimation.relief_windows.search_l_prime`): a window whose pixels are noisy gets a wide
+    interval (and "weak") even where its residual happens to be small.
     """
     from .relief_windows import alpha_from_rd_many, search_l_prime, true_spectra
 
@@ -327,6 +335,9 @@ def fit_relief_windows(diffuse_normals: ArrayLike, true_normals: ArrayLike, albe
 
     Dn, Tn, alb = lazy(diffuse_normals), lazy(true_normals), lazy(albedo)
     H, W = Tn.shape[:2]
+    se_all = None if residual_stderr_rad is None else lazy(residual_stderr_rad)
+    if se_all is not None and tuple(se_all.shape) != (H, W, 3):
+        raise ValueError(f"residual_stderr_rad must have shape ({H}, {W}, 3), got {tuple(se_all.shape)}")
     if tuple(Tn.shape) != (H, W, 3) or tuple(Dn.shape) != (H, W, 3, 3) or tuple(alb.shape) != (H, W, 3):
         raise ValueError("need diffuse_normals (H, W, 3, 3), true_normals (H, W, 3) and albedo (H, W, 3)")
     if int(window_px) < 16:
@@ -367,6 +378,7 @@ def fit_relief_windows(diffuse_normals: ArrayLike, true_normals: ArrayLike, albe
             T_b = np.where(_band(reg_all, band, bool)[..., None], T_b, np.nan)
         fin_b = np.isfinite(T_b).all(-1)
         D_b, A_b = _band(Dn, band), _band(alb, band)
+        S_b = None if se_all is None else _band(se_all, band)
         V_b = np.ones(T_b.shape, bool) if v_all is None else _band(v_all, band, bool)
         if V_b.ndim == 2:
             V_b = np.repeat(V_b[..., None], 3, axis=-1)
@@ -376,6 +388,7 @@ def fit_relief_windows(diffuse_normals: ArrayLike, true_normals: ArrayLike, albe
         job_jc: list[tuple[int, int]] = []
         job_data: list[Array] = []
         job_a: list[float] = []
+        job_iv: list[Array] = []                # per job: inverse residual variance (with residual_stderr_rad)
         unk_jc: list[tuple[int, int]] = []      # unknown window-channels and their albedo
         unk_a: list[float] = []
         for j, c0 in enumerate(cols):
@@ -416,6 +429,9 @@ def fit_relief_windows(diffuse_normals: ArrayLike, true_normals: ArrayLike, albe
                 job_jc.append((j, c))
                 job_a.append(a_med)
                 job_data.append(np.stack([dn[..., k] - dn[..., k].mean() for k in comps]))
+                if S_b is not None:
+                    sg = np.maximum(S_b[:, cs, c], min_stderr_rad)
+                    job_iv.append(np.where(ok & np.isfinite(sg), 1.0 / (sg * sg), 0.0))
         if unk_jc:
             _put_unknown_many(ints, i, unk_jc, np.array(unk_a), full_lo, full_hi, eta, fdr)
         if not job_jc:
@@ -430,7 +446,8 @@ def fit_relief_windows(diffuse_normals: ArrayLike, true_normals: ArrayLike, albe
         best, lo, hi, lo_b, hi_b, _ = search_l_prime(spectra, np.stack(job_data), alpha, pixel_mm, eta, l_grid,
                                                      margin, fdr, confidence, model, job_window=np.array(job_w),
                                                      coarse_step=search_step, block_bytes=block_bytes,
-                                                     workers=workers)
+                                                     workers=workers,
+                                                     job_inv_var=np.stack(job_iv) if job_iv else None)
         lo_w, hi_w = lo / (1.0 + model_bias_rel), hi * (1.0 + model_bias_rel)
         point = parameters_from_l_prime(alpha, best)
         iv = _derived_intervals(a_lo, a_hi, lo_w, hi_w)
@@ -445,7 +462,8 @@ def fit_relief_windows(diffuse_normals: ArrayLike, true_normals: ArrayLike, albe
             "confidence": confidence, "model_bias_rel": model_bias_rel,
             "albedo_rel_uncertainty": albedo_rel_uncertainty, "weak_ratio": weak_ratio,
             "min_relief_snr": min_relief_snr, "min_relief_rad": min_relief_rad, "eta": eta, "fdr": fdr,
-            "exit_normalization": c_exit, "fitted_window_channels": n_jobs, "search_step": int(search_step),
+            "exit_normalization": c_exit, "fitted_window_channels": n_jobs,
+            "residual_weights": "Hann x 1/sigma^2 from the frames' noise" if se_all is not None else "Hann", "search_step": int(search_step),
             "seconds": time.perf_counter() - t_wall, "cpu_seconds": time.process_time() - t_cpu,
             "method": "relief blur, profile likelihood per window (estimation.relief), batched per band of rows "
                       "(estimation.relief_windows)"}

@@ -153,10 +153,34 @@ def _window_cost(pred: Array, pw: int, data: Array, jobs: NDArray[np.int64], win
     return out
 
 
+@njit(cache=True)
+def _window_cost_weighted(pred: Array, pw: int, data: Array, jobs: NDArray[np.int64], w2: Array) -> Array:
+    """:func:`_window_cost` with a squared weight per job and pixel: sum_c sum_px w2[jobs[p]] (data - (q - mean q))^2
+    (the mean of q over the window, unweighted, as in the unweighted cost)."""
+    P, C, h, _ = pred.shape
+    w = data.shape[3]
+    out = np.zeros(P)
+    for p in range(P):
+        jd = jobs[p]
+        tot = 0.0
+        for c in range(C):
+            mean = 0.0
+            for i in range(h):
+                for j in range(w):
+                    mean += pred[p, c, i, pw + j]
+            mean /= h * w
+            for i in range(h):
+                for j in range(w):
+                    r = data[jd, c, i, j] - (pred[p, c, i, pw + j] - mean)
+                    tot += w2[jd, i, j] * r * r
+        out[p] = tot
+    return out
+
+
 def search_l_prime(spectra: Array, data: Array, alphas: Array, pixel_mm: float, eta: float, l_grid: Array,
                    margin_px: int, fdr: str, confidence: float, model: str = "dipole-jensen", *,
                    job_window: NDArray[np.int64] | None = None, coarse_step: int = 3, block_bytes: int = 16 << 20,
-                   workers: int = 1
+                   workers: int = 1, job_inv_var: Array | None = None
                    ) -> tuple[Array, Array, Array, NDArray[np.bool_], NDArray[np.bool_], Array]:
     """The l' search for n jobs: ``spectra`` (m, 2, H2, W2r) of the true normals of m windows
     (:func:`true_spectra`), ``job_window`` (n,) the window of each job (default: job i is window i), ``data``
@@ -170,7 +194,13 @@ def search_l_prime(spectra: Array, data: Array, alphas: Array, pixel_mm: float, 
     steps this is the exhaustive search's result exactly (the same grid points, the same arithmetic);
     ``coarse_step=1`` evaluates the whole grid. Unknown costs are NaN in the returned ``cost``.
 
-    ``block_bytes`` bounds the inverse-FFT work arrays (about 4 x 2 H2 W2 x 8 bytes per (job, l') pair)."""
+    ``block_bytes`` bounds the inverse-FFT work arrays (about 4 x 2 H2 W2 x 8 bytes per (job, l') pair).
+
+    ``job_inv_var`` (n, h, w): the residual's inverse variance per pixel (1 / (sigma_diffuse^2 + sigma_true^2) from
+    the frames' noise, :mod:`estimation.gradients.uncertainty`; 0 for unusable pixels). The cost's weight is then
+    win^2 / sigma^2 and the interval's threshold chi^2_1 x phi x 2 sum(win^4/sigma^2) / sum(win^2/sigma^2) above
+    the minimum, phi = max(1, cost_min / (2 sum win^2)) (the stated noise, or the residual where it is larger --
+    model error, unstated noise). Without it: the Hann weight and the residual's own variance (as before)."""
     n, _, h, w = data.shape
     jw = np.arange(n) if job_window is None else np.asarray(job_window, dtype=np.int64)
     nl = l_grid.size
@@ -186,6 +216,12 @@ def search_l_prime(spectra: Array, data: Array, alphas: Array, pixel_mm: float, 
     inv = inv.reshape(kk.shape).astype(np.int64)
     xs, ms = mtf_tables(alphas, eta, fdr, model)
     win = window_weight(h, w, margin_px)
+    w2 = None
+    if job_inv_var is not None:
+        iv = np.asarray(job_inv_var, dtype=np.float64)
+        if iv.shape != (n, h, w):
+            raise ValueError(f"job_inv_var must have shape {(n, h, w)}, got {iv.shape}")
+        w2 = np.ascontiguousarray(np.where(np.isfinite(iv) & (iv > 0), iv, 0.0) * (win * win)[None])
     per_pair = 2 * H2 * W2 * 8 * 4
     block = max(1, int(block_bytes) // per_pair)
     cost = np.full((n, nl), np.nan)
@@ -202,7 +238,8 @@ def search_l_prime(spectra: Array, data: Array, alphas: Array, pixel_mm: float, 
             Z = _modulated_spectra(spectra, jw[jb], Mu, inv)                           # (P, 2, H2, W2r)
             Z = sfft.ifft(Z, axis=-2, overwrite_x=True, workers=workers)[..., ph:ph + h, :]
             pred = sfft.irfft(Z, n=W2, axis=-1, workers=workers)                   # (P, 2, h, W2)
-            cost[jb, lb] = _window_cost(pred, pw, data, jb, win)
+            cost[jb, lb] = (_window_cost(pred, pw, data, jb, win) if w2 is None
+                            else _window_cost_weighted(pred, pw, data, jb, w2))
 
     rows = np.arange(n)
     grid = np.arange(nl)
@@ -232,8 +269,16 @@ def search_l_prime(spectra: Array, data: Array, alphas: Array, pixel_mm: float, 
     best = np.where(par, ll[k] + off * (ll[1] - ll[0]), best)
     cmin = np.where(par, y1 - 0.25 * (y0 - y2) * off, cmin)
     W2s, W4s = float(np.sum(win ** 2)), float(np.sum(win ** 4))
-    s2 = np.maximum(cmin, 0.0) / (2 * W2s)     # residual variance per pixel and component
-    thr = np.maximum(cmin + stats.chi2.ppf(confidence, 1) * s2 * W4s / W2s * 2, cost[rows, k])
+    if w2 is None:
+        s2 = np.maximum(cmin, 0.0) / (2 * W2s)     # residual variance per pixel and component
+        thr = np.maximum(cmin + stats.chi2.ppf(confidence, 1) * s2 * W4s / W2s * 2, cost[rows, k])
+    else:                                      # the stated noise, widened where the residual exceeds it
+        phi = np.maximum(1.0, np.maximum(cmin, 0.0) / (2 * W2s))
+        u2 = w2.sum(axis=(1, 2))
+        u4 = (w2 * (win * win)[None]).sum(axis=(1, 2))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ratio = np.where(u2 > 0, u4 / u2, np.inf)
+        thr = np.maximum(cmin + stats.chi2.ppf(confidence, 1) * phi * ratio * 2, cost[rows, k])
     if step > 1:      # the fine grid between the outermost known points inside and the known points beyond
         while True:
             known = ~np.isnan(cost)

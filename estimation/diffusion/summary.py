@@ -3,6 +3,7 @@ path (:func:`estimate_sphere`) (``estimation.diffusion``).
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -86,7 +87,8 @@ class DiffusionSummary:
 
 def summarize(dmaps: DiffusionMaps, region: ArrayLike | None = None, *, confidence: float = 0.95,
               systematic_shortening: float = 5e-4, systematic_albedo_rel: float = 2e-3,
-              fdr: str = "fit", model: str | None = None, model_bias: bool = True) -> DiffusionSummary:
+              fdr: str = "fit", model: str | None = None, model_bias: bool = True,
+              pixel_stderr: Mapping[str, ArrayLike] | None = None) -> DiffusionSummary:
     """Robust per-channel summary over ``region`` (default: every known pixel).
 
     ``model``: the profile model of the maps (default: the one recorded in ``dmaps.provenance``, else
@@ -100,6 +102,12 @@ def summarize(dmaps: DiffusionMaps, region: ArrayLike | None = None, *, confiden
     the first-order formula for ``method="small_blur"``); the interval of every parameter is the range over the
     four corners of the (albedo, shortening) box, which is exact for these monotone maps. Otherwise (varying
     curvature) the parameters' own per-pixel medians and order-statistic intervals are reported.
+
+    ``pixel_stderr``: {"albedo": (H, W, 3), "shortening": (H, W, 3)} per-pixel standard errors propagated from the
+    frames' noise (:mod:`estimation.gradients.uncertainty`). The observables' intervals are then also at least
+    median +- z sqrt(pi/2) sqrt(mean sigma^2 / n) (the median's standard error under the stated Gaussian noise),
+    so a region whose pixels are noisier than their scatter shows (correlated noise, a smoothed demosaic) still
+    gets the width its noise implies; pixels with an infinite standard error are left out of the summary.
     """
     H, W = dmaps.albedo.shape[:2]
     if model is None:
@@ -122,8 +130,21 @@ def summarize(dmaps: DiffusionMaps, region: ArrayLike | None = None, *, confiden
         spread[c] = np.percentile(d_c[np.isfinite(d_c)], [25, 75]) if np.isfinite(d_c).any() else np.nan
         radii = dmaps.radius_mm[m]
         uniform = np.ptp(radii) <= 1e-6 * float(np.max(radii))
+        if pixel_stderr is not None:    # pixels without a first-order standard error carry no usable value
+            for key in ("albedo", "shortening"):
+                m = m & np.isfinite(np.asarray(pixel_stderr[key])[..., c])
+            npix[c] = int(m.sum())
+            if npix[c] == 0:
+                status.append("unknown")
+                continue
         A_med, A_lo, A_hi = _median_ci(dmaps.albedo[..., c][m], confidence)
         S_med, S_lo, S_hi = _median_ci(dmaps.shortening[..., c][m], confidence)
+        if pixel_stderr is not None:
+            z = float(stats.norm.ppf(0.5 + confidence / 2))
+            hw = {key: z * np.sqrt(np.pi / 2 * np.mean(np.asarray(pixel_stderr[key], dtype=np.float64)[..., c][m] ** 2)
+                                   / npix[c]) for key in ("albedo", "shortening")}
+            A_lo, A_hi = min(A_lo, A_med - hw["albedo"]), max(A_hi, A_med + hw["albedo"])
+            S_lo, S_hi = min(S_lo, S_med - hw["shortening"]), max(S_hi, S_med + hw["shortening"])
         vals["albedo"][c], ints["albedo"][c] = A_med, (A_lo * (1 - systematic_albedo_rel),
                                                       A_hi * (1 + systematic_albedo_rel))
         vals["shortening"][c], ints["shortening"][c] = S_med, (S_lo - systematic_shortening,
@@ -163,7 +184,9 @@ def summarize(dmaps: DiffusionMaps, region: ArrayLike | None = None, *, confiden
             status.append("censored" if cens else "ok")
     params = {k: ParameterSummary(vals[k], ints[k]) for k in _PARAMS}
     prov = {"confidence": confidence, "systematic_shortening": systematic_shortening,
-            "systematic_albedo_rel": systematic_albedo_rel, "maps": dmaps.provenance, "model": model}
+            "systematic_albedo_rel": systematic_albedo_rel, "maps": dmaps.provenance, "model": model,
+            "pixel_noise": "frames' noise propagated (at least the median's standard error under it)"
+            if pixel_stderr is not None else "order statistics of the pixels' scatter"}
     if model_bias:
         try:
             prov["model_bias"] = grounded_model_bias(vals["sigma_s_prime_per_mm"], vals["sigma_a_per_mm"], eta,
@@ -202,13 +225,15 @@ def estimate_sphere(maps: GradientMaps, *, radius_mm: float, true_normals: Array
                     method: str = "sphere", erode_px: int = 2, confidence: float = 0.95,
                     fdr: str = "fit", inversion: str = "table", tile_rows: int = 256,
                     out_dir: str | Path | None = None, workers: int | None = None,
-                    model: str = "dipole-jensen") -> SphereEstimate:
+                    model: str = "dipole-jensen", pixel_stderr: Mapping[str, ArrayLike] | None = None
+                    ) -> SphereEstimate:
     """Grounded estimate on a known sphere: per-pixel maps plus the region summary (median + interval).
 
     The true normals come from ``true_normals`` (H, W, 3) or from ``camera`` + ``center_mm`` via
     :func:`sphere_geometry`. ``region`` defaults to the pixels on the sphere, eroded by ``erode_px`` so that
     silhouette pixels (partly background) are not used; masked / grazing / dark pixels of ``maps`` are excluded.
     ``inversion``, ``tile_rows``, ``out_dir``: see :func:`estimate_diffusion` (the summary always inverts exactly).
+    ``pixel_stderr``: the frames' noise propagated to the albedo and shortening maps (:func:`summarize`).
     """
     from scipy import ndimage
 
@@ -231,4 +256,5 @@ def estimate_sphere(maps: GradientMaps, *, radius_mm: float, true_normals: Array
     dm = estimate_diffusion(maps, true_normals, sphere_radius_mm=radius_mm, method=method, region=reg, fdr=fdr,
                             inversion=inversion, tile_rows=tile_rows, out_dir=out_dir, workers=workers,
                             model=model)
-    return SphereEstimate(dm, summarize(dm, reg, confidence=confidence, fdr=fdr, model=model))
+    return SphereEstimate(dm, summarize(dm, reg, confidence=confidence, fdr=fdr, model=model,
+                                        pixel_stderr=pixel_stderr))

@@ -93,12 +93,14 @@ class _Known:
 
 def relief_estimate(maps: Any, true_normals: NDArray[np.float64], source: str, camera: Any,
                     region: NDArray[np.bool_] | None, out_dir: Path, fmt: str, window_px: int,
-                    seed_D_mm: Any = None) -> tuple[dict[str, Any], dict[str, Path], Any]:
+                    seed_D_mm: Any = None, residual_stderr_rad: Any = None
+                    ) -> tuple[dict[str, Any], dict[str, Path], Any]:
     """The per-window relief fit and its region summary; writes the window maps. With the seed's D map
     (``seed_D_mm``, (H, W, 3)) also the seed beside the fit (:func:`estimation.relief.compare_seed`): the maps
     ``relief_D_seed_ratio`` (window median seed D / fitted D) and ``relief_D_seed_disagree`` (1 where the seed lies
     outside the fit's interval, 0 where it agrees, NaN where not compared) and ``versus_seed`` in the summary.
-    Returns (summary, files, fit): ``fit`` the :class:`estimation.relief.ReliefFit` (None when the image is
+    ``residual_stderr_rad`` (H, W, 3): the frames' noise propagated to the residual (:mod:`rig.estimate.folder_noise`;
+    the fit's weights and intervals). Returns (summary, files, fit): ``fit`` the :class:`estimation.relief.ReliefFit` (None when the image is
     smaller than a window), for the per-region summaries (:mod:`rig.estimate.folder_regions`)."""
     from rig.files.imageio import write_exr, write_float_tiff
 
@@ -113,7 +115,8 @@ def relief_estimate(maps: Any, true_normals: NDArray[np.float64], source: str, c
     # every input is read one band of window rows at a time (memory maps, derived maps, float32 normals): no
     # full-frame float64 copy; the region masks the true normals and the pixels inside the fit
     fit = fit_relief_windows(maps.diffuse_normals, true_normals, maps.albedo, px, float(maps.eta),
-                             window_px=window_px, valid=_Known(maps.unknown), region=reg)
+                             window_px=window_px, valid=_Known(maps.unknown), region=reg,
+                             residual_stderr_rad=residual_stderr_rad)
     reg = summarize_relief(fit, region)
     files: dict[str, Path] = {}
     out = Path(out_dir)
@@ -268,9 +271,11 @@ def apply_dark_channels(cap: Any, maps: Any, obj: Any, exposure: Any, notes: lis
 
 
 def relief_branch(cap: Any, maps: Any, obj: Any, out_dir: Path, fmt: str, window_px: int | None,
-                  notes: list[str], seed_D_mm: Any = None) -> tuple[dict[str, Any], dict[str, Path], Any]:
+                  notes: list[str], seed_D_mm: Any = None, noise: Any = None
+                  ) -> tuple[dict[str, Any], dict[str, Path], Any]:
     """The relief estimate with the folder's relief geometry, else the specular normals (shape unknown); with the
-    seed's D map, the seed beside it (:func:`relief_estimate`)."""
+    seed's D map, the seed beside it (:func:`relief_estimate`); with the frames' ``noise``
+    (:class:`estimation.gradients.uncertainty.MapNoise`), noise-weighted residuals and intervals."""
     if cap.relief is not None:
         try:
             rel = cap.relief.file.relative_to(cap.folder)
@@ -279,8 +284,12 @@ def relief_branch(cap: Any, maps: Any, obj: Any, out_dir: Path, fmt: str, window
         tn, source = cap.relief.normals, f"{cap.relief.source} {rel}"
     else:
         tn, source = np.asarray(maps.specular_normals, dtype=np.float64), "specular normals (shape unknown)"
+    se = None
+    if noise is not None:
+        from rig.estimate.folder_noise import relief_residual_stderr
+        se = relief_residual_stderr(noise, true_from_specular=cap.relief is None)
     out = relief_estimate(maps, tn, source, cap.camera, obj, out_dir, fmt, window_px or RELIEF_WINDOW_PX,
-                          seed_D_mm=seed_D_mm)
+                          seed_D_mm=seed_D_mm, residual_stderr_rad=se)
     notes.append("diffusion from the relief blur of the diffuse normals against the " + source
                  + " (docs/gradients.md sec. 9)")
     return out

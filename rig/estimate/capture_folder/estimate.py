@@ -241,8 +241,17 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
     notes = list(cap.notes)
     from rig.estimate.folder_diffusion import apply_dark_channels, relief_branch, write_albedo_apparent
     from rig.estimate.folder_regions import channel_medians, grounded_summary, region_summaries
-    apply_dark_channels(cap, maps, obj, exposure, notes)
+    dark = apply_dark_channels(cap, maps, obj, exposure, notes)
     known = ~maps.unknown
+    noise = None
+    if cap.noise is not None:       # the frames' noise through the maps (issue 16: intervals that mean something)
+        from rig.estimate.folder_noise import propagate_capture_noise
+        noise = propagate_capture_noise(cap, maps, dark, folder_maps_kwargs={
+            "albedo_scale": scale, "leds": leds, "ideal": cap.leds.ideal, "eta": rad.eta, "lut": lut_memo.get("lut"),
+            "white_level": 1.0, "saturation": rad.saturation_level, "dark_threshold": rad.dark_level,
+            "reference_normal": n_ref, "surface_center_mm": center, "surface_radius_mm": radius,
+            "exposure_s": exposure, "consistency": False}, view=view, obj=obj, geo_normals=geo_normals,
+            true_normals=normals)
     seed_est = None
     if cap.seed is not None:
         seed_est = diffusion_seed(maps, cap.seed.k_mm, cap.seed.provenance, true_normals=normals)
@@ -256,7 +265,9 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
         method = "sphere" if model == "dipole-jensen" else "small_blur"
         est = estimate_sphere(maps, radius_mm=cap.geometry.radius_mm, true_normals=normals, region=obj,
                               tile_rows=tile_rows or 256, out_dir=None if scratch is None else scratch / "diffusion",
-                              method=method, model=model)
+                              method=method, model=model,
+                              pixel_stderr=None if noise is None else {"albedo": noise.albedo,
+                                                                       "shortening": noise.shortening})
         diffusion = est.maps        # the dipole's measured shortening bias widens the intervals (issue 16)
         diff_summary = grounded_summary(est.summary, cap.geometry.radius_mm, rad.eta)
         if reference is not None:
@@ -267,7 +278,7 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
     elif cap.relief is not None or maps.specular_normals is not None:
         diff_summary, relief_files, relief_fit = relief_branch(
             cap, maps, obj, Path(out_dir), fmt, relief_window_px, notes,
-            seed_D_mm=None if seed_est is None else seed_est.D_mm)
+            seed_D_mm=None if seed_est is None else seed_est.D_mm, noise=noise)
     else:
         diff_summary = {"estimator": "grounded", "status": ["unknown"] * 3,
                         "reason": "no geometry ([object] shape = \"sphere\" with center_mm, radius_mm): a region "
@@ -306,6 +317,10 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
                  "specular": maps.specular_normals is not None},
         "diffusion": diff_summary, "seed": seed_summary, "notes": notes,
     }
+    noise_files: dict[str, Path] = {}
+    if noise is not None:
+        from rig.estimate.folder_noise import noise_summary
+        summary["noise"] = noise_summary(cap, noise, known)
     if ref_summary is not None:
         summary["diffusion_reference_corrected"] = ref_summary
     if cap.regions is not None:     # rig.estimate.folder_regions: the same summaries restricted to each labelled region
@@ -331,6 +346,7 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
                    **({"center_mm": cap.geometry.center_mm, "radius_mm": cap.geometry.radius_mm}
                       if cap.geometry else {}), "regions": cap.regions and cap.regions.provenance(cap.folder)},
         "seed": None if cap.seed is None else {"k_mm": cap.seed.k_mm, **cap.seed.provenance},
+        "noise": None if cap.noise is None else cap.noise.provenance(cap.folder),
         "parameters": {"format": fmt, "tile_rows": tile_rows or 256, "model": model,
                        "maps": "all" if select is None else list(select), "half": bool(half),
                        "reference": None if ref_summary is None else ref_summary["reference"]},
@@ -346,9 +362,13 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
         raise CaptureError(f"{out_dir}: cannot write the maps ({exc})") from exc
     try:
         app_path = app_write()
+        if noise is not None:
+            from rig.estimate.folder_noise import write_noise_maps
+            noise_files = write_noise_maps(noise, Path(out_dir), fmt)
     except OSError as exc:
         raise CaptureError(f"{out_dir}: cannot write the maps ({exc})") from exc
-    summary["files"] = {k: str(p) for k, p in {**files, **relief_files, "albedo_apparent": app_path}.items()}
+    summary["files"] = {k: str(p) for k, p in {**files, **relief_files, "albedo_apparent": app_path,
+                                                **noise_files}.items()}
     summary["seconds_maps"] = t_maps
     summary["seconds"] = time.perf_counter() - t0
     return jsonable(summary)

@@ -23,7 +23,7 @@ from .spec import (_AXES, _REQ, CAPTURE_FILE, CAPTURE_FORMAT, CAPTURE_FORMAT_VER
 
 
 # ------------------------------------------------------------------------------------------------ sections
-def _read_frames(file: str, folder: Path, data: dict[str, Any]
+def _read_frames(file: str, folder: Path, data: dict[str, Any], stderr_out: dict[FrameKey, Any] | None = None
                  ) -> tuple[tuple[FrameEntry, ...], dict[FrameKey, NDArray[np.float32]]]:
     raw = data.get("frames")
     if not isinstance(raw, list) or not raw:
@@ -36,7 +36,7 @@ def _read_frames(file: str, folder: Path, data: dict[str, Any]
         if not isinstance(item, dict):
             raise ConfigError(file, f"frames[{i}]", "a table with file, pattern, polarization, exposure_s",
                               type(item).__name__)
-        t = _Table(file, item, f"frames[{i}].", ("file", "pattern", "polarization", "exposure_s"))
+        t = _Table(file, item, f"frames[{i}].", ("file", "pattern", "polarization", "exposure_s", "stderr_file"))
         pattern = t.str("pattern", choices=PATTERNS)
         pol = t.str("polarization", choices=POLARIZATIONS)
         exposure = t.num("exposure_s", positive=True)
@@ -65,6 +65,9 @@ def _read_frames(file: str, folder: Path, data: dict[str, Any]
                               f"{_rel(path, folder)}: {shape[1]} x {shape[0]} px")
         entries.append(FrameEntry(i, path, pattern, pol, exposure, sha256_file(path), str(meta.get("format")), shape))
         images[key] = img
+        if t.has("stderr_file") and stderr_out is not None:
+            from .noise import read_frame_stderr
+            stderr_out[key] = read_frame_stderr(t, folder, shape)
     miss = missing_frames(images)
     if miss:
         raise ConfigError(file, "frames", "a sufficient frame set: ambient and, per axis, the gradient with its "
@@ -381,7 +384,7 @@ def load_capture(folder: str | Path) -> Capture:
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(file, "<syntax>", "valid TOML", str(exc)) from None
     top = _Table(file, data, "", ("format", "format_version", "name", "description", "frames", "leds", "camera",
-                                  "radiometry", "object", "seed"))
+                                  "radiometry", "object", "seed", "noise"))
     if top.str("format") != CAPTURE_FORMAT:
         raise top.err("format", repr(CAPTURE_FORMAT), data.get("format"))
     v = data.get("format_version")
@@ -389,7 +392,10 @@ def load_capture(folder: str | Path) -> Capture:
         raise top.err("format_version", str(CAPTURE_FORMAT_VERSION), v)
     name = top.str("name", root.resolve().name)
     top.str("description", "")
-    frames, images = _read_frames(file, root, data)
+    frame_stderr: dict[FrameKey, Any] = {}
+    frames, images = _read_frames(file, root, data, frame_stderr)
+    from .noise import read_noise
+    noise = read_noise(file, data, frame_stderr, len(frames))
     shape = frames[0].shape
     leds = _read_leds(file, root, data)
     camera, cam_spec = _read_camera(file, data, shape)
@@ -408,4 +414,4 @@ def load_capture(folder: str | Path) -> Capture:
     spec_ok, spec_note = _specular_possible(set(images))
     notes = tuple(n for n in (spec_note,) if n)
     return Capture(root, cfile, sha256_file(cfile), name, frames, images, leds, camera, cam_spec, radiometry, mask,
-                   mask_file, geo, seed, spec_ok, notes, relief, regions)
+                   mask_file, geo, seed, spec_ok, notes, relief, regions, noise)

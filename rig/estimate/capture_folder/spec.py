@@ -270,6 +270,7 @@ class Capture:
     notes: tuple[str, ...] = ()
     relief: Any = None          # rig.estimate.folder_diffusion.ReliefGeometry ([object] shape = "relief") or None
     regions: Any = None         # rig.estimate.folder_regions.RegionLabels ([object] regions) or None
+    noise: Any = None           # rig.estimate.capture_folder.noise.NoiseSpec ([noise] / frames' stderr_file) or None
 
     @property
     def shape(self) -> tuple[int, int]:
