@@ -104,8 +104,10 @@ def summarize(dmaps: DiffusionMaps, region: ArrayLike | None = None, *, confiden
     curvature) the parameters' own per-pixel medians and order-statistic intervals are reported.
 
     ``pixel_stderr``: {"albedo": (H, W, 3), "shortening": (H, W, 3)} per-pixel standard errors propagated from the
-    frames' noise (:mod:`estimation.gradients.uncertainty`). The observables' intervals are then also at least
-    median +- z sqrt(pi/2) sqrt(mean sigma^2 / n) (the median's standard error under the stated Gaussian noise),
+    frames' noise (:mod:`estimation.gradients.uncertainty`), optionally "albedo_rel_common" (3,): a relative
+    standard error shared by every pixel (the albedo scale's, e.g. from a noisy reference target). The
+    observables' intervals are then also at least median +- z sqrt(pi/2) sqrt(mean sigma^2 / n) (the median's
+    standard error under the stated Gaussian noise; the common part added in quadrature to the albedo's),
     so a region whose pixels are noisier than their scatter shows (correlated noise, a smoothed demosaic) still
     gets the width its noise implies; pixels with an infinite standard error are left out of the summary.
     """
@@ -143,6 +145,9 @@ def summarize(dmaps: DiffusionMaps, region: ArrayLike | None = None, *, confiden
             z = float(stats.norm.ppf(0.5 + confidence / 2))
             hw = {key: z * np.sqrt(np.pi / 2 * np.mean(np.asarray(pixel_stderr[key], dtype=np.float64)[..., c][m] ** 2)
                                    / npix[c]) for key in ("albedo", "shortening")}
+            if "albedo_rel_common" in pixel_stderr:     # e.g. the albedo scale's, shared by every pixel
+                rel = float(np.asarray(pixel_stderr["albedo_rel_common"], dtype=np.float64).reshape(-1)[c])
+                hw["albedo"] = float(np.hypot(hw["albedo"], z * rel * A_med))
             A_lo, A_hi = min(A_lo, A_med - hw["albedo"]), max(A_hi, A_med + hw["albedo"])
             S_lo, S_hi = min(S_lo, S_med - hw["shortening"]), max(S_hi, S_med + hw["shortening"])
         vals["albedo"][c], ints["albedo"][c] = A_med, (A_lo * (1 - systematic_albedo_rel),

@@ -23,7 +23,32 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["propagate_capture_noise", "noise_summary", "write_noise_maps", "relief_residual_stderr"]
+__all__ = ["propagate_capture_noise", "noise_summary", "write_noise_maps", "relief_residual_stderr",
+           "reference_scale_rel_stderr"]
+
+
+def reference_scale_rel_stderr(cap: Any) -> NDArray[np.float64] | None:
+    """Relative standard error (3,) of the albedo scale measured on ``[radiometry.reference]`` (None without a
+    reference target): the median over the region of the ambient-subtracted full-on signal per second has the
+    standard error sqrt(pi/2) sqrt(mean var / n), var = (sigma_full / e_full)^2 + (sigma_ambient / e_ambient)^2
+    (or the gradient + complement pair's), and the scale is its inverse. Shared by every pixel of the albedo map,
+    it is not reduced by pooling pixels (:func:`estimation.diffusion.summarize`, ``albedo_rel_common``)."""
+    ref = cap.radiometry.reference
+    if ref is None or cap.noise is None:
+        return None
+    x0, y0, x1, y1 = ref.region_px
+    exp = {f.key: f.exposure_s for f in cap.frames}
+    keys = [("full", "cross")] if ("full", "cross") in cap.images else next(
+        [(a, "cross"), (a + "_c", "cross")] for a in "xyz" if (a, "cross") in cap.images
+        and (a + "_c", "cross") in cap.images)
+    se = cap.noise.stderr_images({k: cap.images[k] for k in keys + [("ambient", "cross")]})
+    sig = sum(cap.images[k][y0:y1, x0:x1].astype(np.float64) / exp[k] for k in keys) \
+        - len(keys) * cap.images[("ambient", "cross")][y0:y1, x0:x1].astype(np.float64) / exp[("ambient", "cross")]
+    var = sum((se[k][y0:y1, x0:x1].astype(np.float64) / exp[k]) ** 2 for k in keys) \
+        + len(keys) ** 2 * (se[("ambient", "cross")][y0:y1, x0:x1].astype(np.float64) / exp[("ambient", "cross")]) ** 2
+    n = sig.shape[0] * sig.shape[1]
+    med = np.median(sig.reshape(-1, 3), axis=0)
+    return np.sqrt(np.pi / 2 * var.reshape(-1, 3).mean(axis=0) / n) / med
 
 
 def propagate_capture_noise(cap: Any, maps: Any, dark: list[bool], *, folder_maps_kwargs: dict[str, Any],

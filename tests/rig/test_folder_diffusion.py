@@ -189,3 +189,66 @@ def test_ketchup_relief_dark_channels_unknown_and_red_weak(tmp_path, capsys) -> 
     ssp, sa = np.array([0.18, 0.07, 0.03]), np.array([0.061, 0.97, 1.45])
     lo, hi = d["l_d_mm"]["interval"][0]
     assert lo <= 1 / np.sqrt(3 * sa[0] * (ssp[0] + sa[0])) <= hi and hi / lo > 10
+
+
+def _add_camera_noise(folder: Path, gain: float, read: float, seed: int = 0) -> None:
+    rng = np.random.default_rng(seed)
+    for f in sorted((folder / "frames").glob("*.exr")):
+        img = np.asarray(read_image(f)[0], dtype=np.float64)
+        write_exr(f, (img + rng.standard_normal(img.shape) * np.sqrt(np.maximum(img, 0) / gain + read ** 2)
+                      ).astype(np.float32))
+
+
+def test_stated_frame_noise_weights_the_relief_fit(tmp_path, capsys) -> None:
+    """Issue 16 item 2 through the CLI: camera noise (5000 e-/value) added to the relief frames and stated in
+    [noise]; the maps' standard errors are written, the relief fit weights its residuals by them and its l_d / D
+    intervals cover the truth; the summary and the sidecar name the noise source."""
+    folder = _copy(tmp_path, '[object]\nshape = "relief"\nnormals_file = "true_normals.npy"\n\n'
+                             '[noise]\nelectrons_per_value = 5000\nread_noise = 2e-4\n')
+    _add_camera_noise(folder, 5000.0, 2e-4)
+    s = _run(folder, capsys, "--relief-window-px", "32")
+    d = s["diffusion"]
+    assert d["fit"]["residual_weights"].startswith("Hann x 1/sigma^2")
+    assert _covers(d, "D_mm", D).all() and _covers(d, "l_d_mm", L_D).all()
+    sd = np.asarray(s["noise"]["diffuse_normal_stderr_rad_median"])
+    assert np.all((sd > 0.02) & (sd < 0.5)) and sd[0] < sd[1] < sd[2], sd     # fewer photons in G, B
+    for name in ("albedo_stderr", "diffuse_normals_stderr_rad", "specular_normals_stderr_rad"):
+        assert Path(s["files"][name]).is_file(), name
+    import json
+    side = json.loads(Path(s["files"]["sidecar"]).read_text())
+    assert side["provenance"]["noise"]["source"] == "shot+read"
+
+
+@pytest.mark.parametrize("extra,frames_edit,key,expected", [
+    ("[noise]\nelectrons_per_value = 0\n", None, "noise.electrons_per_value", "> 0"),
+    ("[noise]\nread_noise = 1\n", None, "noise.electrons_per_value", "key is missing"),
+    ("[noise]\nelectrons_per_value = 10\nshot = 1\n", None, "noise.shot", "documented keys"),
+    ("", "one", "frames[].stderr_file", "every frame or on none"),
+    ("", "small", "frames[0].stderr_file", "64 x 64"),
+    ("[noise]\nelectrons_per_value = 10\n", "all", "noise.electrons_per_value", "not both"),
+])
+def test_bad_noise_spec_names_file_and_key(tmp_path, extra, frames_edit, key, expected) -> None:
+    folder = _copy(tmp_path, extra)
+    write_exr(folder / "se.exr", np.full((64, 64, 3), 1e-3, np.float32))
+    write_exr(folder / "se_small.exr", np.full((8, 8, 3), 1e-3, np.float32))
+    if frames_edit:
+        p = folder / "capture.toml"
+        t = p.read_text()
+        n = 1 if frames_edit in ("one", "small") else -1
+        t = t.replace("exposure_s = 0.02\n", "exposure_s = 0.02\nstderr_file = \""
+                      + ("se_small.exr" if frames_edit == "small" else "se.exr") + "\"\n", n)
+        p.write_text(t)
+    with pytest.raises(Exception) as ei:
+        load_capture(folder)
+    assert f"'{key}'" in str(ei.value) and expected in str(ei.value), str(ei.value)
+
+
+def test_stderr_files_on_every_frame_are_the_noise_source(tmp_path) -> None:
+    folder = _copy(tmp_path)
+    write_exr(folder / "se.exr", np.full((64, 64, 3), 1e-3, np.float32))
+    p = folder / "capture.toml"
+    p.write_text(p.read_text().replace("exposure_s = 0.02\n", "exposure_s = 0.02\nstderr_file = \"se.exr\"\n"))
+    cap = load_capture(folder)
+    se = cap.noise.stderr_images(cap.images)
+    assert cap.noise.source == "stderr_file" and set(se) == set(cap.images)
+    np.testing.assert_allclose(se[("full", "cross")], 1e-3)

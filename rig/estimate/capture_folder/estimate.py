@@ -252,6 +252,8 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
             "reference_normal": n_ref, "surface_center_mm": center, "surface_radius_mm": radius,
             "exposure_s": exposure, "consistency": False}, view=view, obj=obj, geo_normals=geo_normals,
             true_normals=normals)
+    from rig.estimate.folder_noise import reference_scale_rel_stderr
+    scale_rel = reference_scale_rel_stderr(cap)
     seed_est = None
     if cap.seed is not None:
         seed_est = diffusion_seed(maps, cap.seed.k_mm, cap.seed.provenance, true_normals=normals)
@@ -266,8 +268,9 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
         est = estimate_sphere(maps, radius_mm=cap.geometry.radius_mm, true_normals=normals, region=obj,
                               tile_rows=tile_rows or 256, out_dir=None if scratch is None else scratch / "diffusion",
                               method=method, model=model,
-                              pixel_stderr=None if noise is None else {"albedo": noise.albedo,
-                                                                       "shortening": noise.shortening})
+                              pixel_stderr=None if noise is None else {
+                                  "albedo": noise.albedo, "shortening": noise.shortening,
+                                  **({} if scale_rel is None else {"albedo_rel_common": scale_rel})})
         diffusion = est.maps        # the dipole's measured shortening bias widens the intervals (issue 16)
         diff_summary = grounded_summary(est.summary, cap.geometry.radius_mm, rad.eta)
         if reference is not None:
@@ -321,6 +324,8 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
     if noise is not None:
         from rig.estimate.folder_noise import noise_summary
         summary["noise"] = noise_summary(cap, noise, known)
+        if scale_rel is not None:
+            summary["noise"]["albedo_scale_rel_stderr"] = scale_rel.tolist()
     if ref_summary is not None:
         summary["diffusion_reference_corrected"] = ref_summary
     if cap.regions is not None:     # rig.estimate.folder_regions: the same summaries restricted to each labelled region
