@@ -4,8 +4,8 @@ Where the capture has relief or curvature but no sphere, the diffuse normal fiel
 subsurface transport (:mod:`estimation.relief`). The true normals come from the capture folder:
 
 - ``[object] shape = "relief"`` with ``normals_file`` (an .npy (H, W, 3) of rig-frame unit normals, NaN where
-  unknown) or ``height_file`` (an .npy (H, W) height in mm towards the camera on the pixel grid; orthographic
-  camera only), or
+  unknown), ``height_file`` (an .npy (H, W) height in mm towards the camera on the pixel grid; orthographic
+  camera only) or ``mesh_file`` (a mesh rendered into the camera: :mod:`rig.estimate.folder_mesh`), or
 - ``shape = "unknown"`` (or no ``[object]``) with parallel-polarized frames: the specular normals of the same
   capture (Ma et al. 2007) stand in for the true ones.
 
@@ -46,11 +46,20 @@ def read_relief_geometry(t: Any, folder: Path, shape: tuple[int, int], camera: A
     """Read ``normals_file`` or ``height_file`` of an ``[object]`` table ``t`` (``rig.estimate.capture_folder._Table``);
     errors name the file and the key."""
     H, W = shape
-    keys = [k for k in ("normals_file", "height_file") if t.has(k)]
+    keys = [k for k in ("normals_file", "height_file", "mesh_file") if t.has(k)]
     if len(keys) != 1:
-        raise t.err("normals_file", "exactly one of normals_file (.npy, H x W x 3 rig-frame unit normals) or "
-                    "height_file (.npy, H x W heights in mm) with shape = \"relief\"", keys or "neither")
+        raise t.err("normals_file", "exactly one of normals_file (.npy, H x W x 3 rig-frame unit normals), "
+                    "height_file (.npy, H x W heights in mm) or mesh_file (PLY / OBJ / STL in the rig frame) with "
+                    "shape = \"relief\"", keys or "neither")
     k = keys[0]
+    if k != "mesh_file":
+        for extra in ("mesh_units", "mesh_translation_mm"):
+            if t.has(extra):
+                raise t.err(extra, "nothing unless mesh_file is given", extra)
+    if k == "mesh_file":
+        from rig.estimate.folder_mesh import read_mesh_normals
+        normals, path = read_mesh_normals(t, folder, shape, camera)
+        return ReliefGeometry(normals, "mesh_file", path)
     p = t.path(k, folder, ".npy array")
     try:
         a = np.asarray(np.load(p, allow_pickle=False), dtype=np.float64)

@@ -322,7 +322,8 @@ def _read_object(file: str, folder: Path, data: dict[str, Any], shape: tuple[int
     if not isinstance(data["object"], dict):
         raise ConfigError(file, "object", "a table [object]", type(data["object"]).__name__)
     t = _Table(file, data["object"], "object.", ("mask", "shape", "center_mm", "radius_mm", "normals_file",
-                                                 "height_file", "regions", "region_names"))
+                                                 "height_file", "mesh_file", "mesh_units", "mesh_translation_mm",
+                                                 "regions", "region_names"))
     mask, mask_file = _read_mask(t, folder, shape) if t.has("mask") else (None, None)
     shape_kind = t.str("shape", "unknown", choices=("unknown", "sphere", "relief"))
     geo = None
@@ -337,7 +338,7 @@ def _read_object(file: str, folder: Path, data: dict[str, Any], shape: tuple[int
         from rig.estimate.folder_diffusion import read_relief_geometry
         relief = read_relief_geometry(t, folder, shape, camera)
     else:
-        for k in ("normals_file", "height_file"):
+        for k in ("normals_file", "height_file", "mesh_file", "mesh_units", "mesh_translation_mm"):
             if t.has(k):
                 raise t.err(k, "nothing unless shape = \"relief\"", k)
     from rig.estimate.folder_regions import read_regions
