@@ -153,8 +153,8 @@ def grounded_summary(summary: Any, radius_mm: float, eta: float) -> dict[str, An
     return out
 
 
-def _sphere_region(dmaps: Any, region: NDArray[np.bool_], radius_mm: float, eta: float, min_pixels: int
-                   ) -> dict[str, Any]:
+def _sphere_region(dmaps: Any, region: NDArray[np.bool_], radius_mm: float, eta: float, min_pixels: int,
+                   pixel_stderr: Any = None) -> dict[str, Any]:
     """:func:`estimation.diffusion.summarize` over ``region`` (channels with < ``min_pixels`` usable pixels:
     unknown, values NaN, with a reason), then :func:`grounded_summary`'s widening."""
     from estimation.diffusion import summarize
@@ -162,7 +162,7 @@ def _sphere_region(dmaps: Any, region: NDArray[np.bool_], radius_mm: float, eta:
     unknown = np.asarray(dmaps.unknown)
     counts = np.array([int(np.count_nonzero(region & ~unknown[..., c])) for c in range(3)])
     few = counts < min_pixels
-    summ = summarize(dmaps, region if not few.all() else np.zeros_like(region))
+    summ = summarize(dmaps, region if not few.all() else np.zeros_like(region), pixel_stderr=pixel_stderr)
     if few.any():       # NaN the channels below the minimum before the widening (which skips unknown channels)
         from dataclasses import replace
 
@@ -217,7 +217,8 @@ def channel_medians(a: Any, known: NDArray[np.bool_]) -> list[float | None]:
 
 def region_summaries(regions: RegionLabels, maps: Any, albedo_apparent: Any, *, diffusion: Any = None,
                      relief_fit: Any = None, radius_mm: float | None = None, eta: float | None = None,
-                     unknown_reason: str | None = None, min_pixels: int = MIN_REGION_PIXELS) -> list[dict[str, Any]]:
+                     unknown_reason: str | None = None, min_pixels: int = MIN_REGION_PIXELS,
+                     pixel_stderr: Any = None) -> list[dict[str, Any]]:
     """One summary per region: ``label``, ``name``, ``n_pixels_label`` (pixels carrying the label), ``maps``
     (``known_pixels``, ``R_d_median``, ``albedo_apparent_median`` per channel over the label's known pixels) and
     ``diffusion``: with a sphere's grounded maps (``diffusion``, ``radius_mm``, ``eta``) the sphere region summary,
@@ -234,7 +235,7 @@ def region_summaries(regions: RegionLabels, maps: Any, albedo_apparent: Any, *, 
                      "albedo_apparent_median": channel_medians(albedo_apparent, k)}}
         if diffusion is not None:
             assert radius_mm is not None and eta is not None
-            entry["diffusion"] = _sphere_region(diffusion, m, radius_mm, eta, min_pixels)
+            entry["diffusion"] = _sphere_region(diffusion, m, radius_mm, eta, min_pixels, pixel_stderr)
         elif relief_fit is not None:
             entry["diffusion"] = _relief_region(relief_fit, m)
         else:

@@ -254,6 +254,9 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
             true_normals=normals)
     from rig.estimate.folder_noise import reference_scale_rel_stderr
     scale_rel = reference_scale_rel_stderr(cap)
+    sphere_stderr = None if noise is None or noise.shortening is None else {
+        "albedo": noise.albedo, "shortening": noise.shortening,
+        **({} if scale_rel is None else {"albedo_rel_common": scale_rel})}
     seed_est = None
     if cap.seed is not None:
         seed_est = diffusion_seed(maps, cap.seed.k_mm, cap.seed.provenance, true_normals=normals)
@@ -268,9 +271,7 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
         est = estimate_sphere(maps, radius_mm=cap.geometry.radius_mm, true_normals=normals, region=obj,
                               tile_rows=tile_rows or 256, out_dir=None if scratch is None else scratch / "diffusion",
                               method=method, model=model,
-                              pixel_stderr=None if noise is None else {
-                                  "albedo": noise.albedo, "shortening": noise.shortening,
-                                  **({} if scale_rel is None else {"albedo_rel_common": scale_rel})})
+                              pixel_stderr=sphere_stderr)
         diffusion = est.maps        # the dipole's measured shortening bias widens the intervals (issue 16)
         diff_summary = grounded_summary(est.summary, cap.geometry.radius_mm, rad.eta)
         if reference is not None:
@@ -330,7 +331,8 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
         summary["diffusion_reference_corrected"] = ref_summary
     if cap.regions is not None:     # rig.estimate.folder_regions: the same summaries restricted to each labelled region
         summary["regions"] = region_summaries(cap.regions, maps, alb_app, diffusion=diffusion, relief_fit=relief_fit,
-                                              radius_mm=radius, eta=rad.eta, unknown_reason=diff_summary.get("reason"))
+                                              radius_mm=radius, eta=rad.eta, unknown_reason=diff_summary.get("reason"),
+                                              pixel_stderr=sphere_stderr)
     prov: dict[str, Any] = {
         "name": cap.name,
         "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
