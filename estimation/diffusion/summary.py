@@ -82,6 +82,8 @@ class DiffusionSummary:
         out["model"] = self.provenance.get("model", "dipole-jensen")
         if "model_bias" in self.provenance:
             out["model_bias"] = self.provenance["model_bias"]
+        if "pixel_noise" in self.provenance:
+            out["pixel_noise"] = self.provenance["pixel_noise"]
         return out
 
 

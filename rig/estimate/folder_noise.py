@@ -117,6 +117,7 @@ def write_noise_maps(noise: Any, out_dir: Path, fmt: str) -> dict[str, Path]:
     items = {"albedo_stderr": noise.albedo, "diffuse_normals_stderr_rad": noise.diffuse_normal_rad,
              "specular_normals_stderr_rad": noise.specular_normal_rad, "shortening_stderr": noise.shortening}
     for name, a in items.items():
-        if a is not None:
-            out[name] = writer(out_dir / f"{name}{ext}", np.asarray(a, dtype=np.float32))
+        if a is not None:           # every float map has 3 channels (docs/capture-folder.md sec. 5)
+            a = np.asarray(a, dtype=np.float32)
+            out[name] = writer(out_dir / f"{name}{ext}", np.repeat(a[..., None], 3, axis=-1) if a.ndim == 2 else a)
     return out
