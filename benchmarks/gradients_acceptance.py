@@ -51,7 +51,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import numpy as np  # noqa: E402
 
-from benchmarks.gradients_cases import Case, build_case, truth, with_normals_file  # noqa: E402
+from benchmarks.gradients_cases import Case, build_case, truth, with_noise, with_normals_file  # noqa: E402
 from rig.files.provenance import write_json  # noqa: E402
 
 CHANNELS = "RGB"
@@ -250,8 +250,9 @@ def print_rules(rs: list[dict[str, Any]]) -> None:
 
 
 def run(cases: list[Case], root: Path | None = None, out_dir: Path | None = None, verbose: bool = True,
-        relief_geometries: tuple[str, ...] = ("normals_file", "specular")) -> dict[str, Any]:
-    """Render (or load) and estimate every case (relief cases once per entry of ``relief_geometries``); returns
+        relief_geometries: tuple[str, ...] = ("normals_file", "specular"), noise: bool = False) -> dict[str, Any]:
+    """Render (or load) and estimate every case (relief cases once per entry of ``relief_geometries``); ``noise``:
+    state the cases' camera noise in ``[noise]`` (a copy of each folder) so the intervals propagate it. Returns
     {rows, metas, rules}."""
     rows: list[dict[str, Any]] = []
     metas: dict[str, dict[str, Any]] = {}
@@ -265,6 +266,8 @@ def run(cases: list[Case], root: Path | None = None, out_dir: Path | None = None
                       f"({meta['render_seconds']:.1f} s to render) {folder}", file=sys.stderr, flush=True)
             variants = [(g, with_normals_file(folder, base / f"case{i}") if g == "normals_file" else folder)
                         for g in relief_geometries] if case.family == "relief" else [("", folder)]
+            if noise:
+                variants = [(g, with_noise(f, f if f != folder else base / f"case{i}{g}noise")) for g, f in variants]
             sec_all = 0.0
             for geo, f in variants:
                 try:
@@ -295,6 +298,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quick", action="store_true", help="the CI subset: one small relief slab, one 5 mm sphere")
     ap.add_argument("--json", type=Path, metavar="OUT", help="write rows, render facts and rules as JSON")
     ap.add_argument("--cases", help="comma-separated substrings: run the cases whose name contains any")
+    ap.add_argument("--noise", action="store_true", help="state the cases' camera noise in [noise] (1.5 e-/DN, "
+                    "2 DN read noise): the estimates propagate it into their intervals (docs/gradients.md sec. 9)")
     ap.add_argument("--reprint", type=Path, metavar="JSON", help="print the table and rules of a --json file "
                     "again (rules re-derived from its rows; nothing rendered or estimated)")
     args = ap.parse_args(argv)
@@ -313,10 +318,11 @@ def main(argv: list[str] | None = None) -> int:
     import numba
 
     t0 = time.perf_counter()
-    print(f"# Issue 16 acceptance ({'quick' if args.quick else 'full'}; {len(cases)} cases): machine "
+    print(f"# Issue 16 acceptance ({'quick' if args.quick else 'full'}; {len(cases)} cases"
+          f"{'; [noise] stated' if args.noise else ''}): machine "
           f"{platform.machine()}, {os.cpu_count()} CPUs, numba threads {numba.get_num_threads()}, load "
           f"{os.getloadavg()[0]:.2f}\n")
-    res = run(cases)
+    res = run(cases, noise=args.noise)
     print_rows(res["rows"], res["metas"])
     print_rules(res["rules"])
     total = time.perf_counter() - t0

@@ -234,3 +234,25 @@ def with_normals_file(folder: Path, dest: Path) -> Path:
     toml = dest / "capture.toml"
     toml.write_text(toml.read_text() + '\n[object]\nshape = "relief"\nnormals_file = "true_normals.npy"\n')
     return dest
+
+
+def camera_noise_toml() -> str:
+    """The cases' camera noise as a capture folder's ``[noise]`` table (docs/capture-folder.md): frame values are
+    (DN - black) / (white - black), so electrons per value = 1.5 e-/DN x (white - black) and the read noise is
+    2 DN / (white - black)."""
+    span = float(WHITE_DN - BLACK_DN)
+    return f"\n[noise]\nelectrons_per_value = {1.5 * span!r}\nread_noise = {2.0 / span!r}\n"
+
+
+def with_noise(folder: Path, dest: Path) -> Path:
+    """``folder`` (or, when ``dest`` already holds a copy, that copy) with the cases' camera noise stated in
+    ``[noise]`` (:func:`camera_noise_toml`): the estimate then propagates it into its intervals."""
+    import shutil
+
+    if folder != dest:
+        if dest.exists():
+            shutil.rmtree(dest)
+        shutil.copytree(folder, dest)
+    toml = dest / "capture.toml"
+    toml.write_text(toml.read_text() + camera_noise_toml())
+    return dest
