@@ -68,10 +68,12 @@ class RegionLabels:
 
 
 def _load_label_image(t: Any, p: Path) -> NDArray[Any]:
-    """The raw array of a label file (PNG via OpenCV unchanged, or .npy); errors name the key and the file."""
-    expected = "an 8- or 16-bit single-channel PNG or an .npy integer array (0 = no region, 1..N = regions)"
+    """The raw array of a label file (PNG via OpenCV unchanged, TIFF via tifffile, or .npy); errors name the key
+    and the file."""
+    expected = ("an 8- or 16-bit single-channel PNG or TIFF, or an .npy integer array (0 = no region, "
+                "1..N = regions)")
     suffix = p.suffix.lower()
-    if suffix not in (".png", ".npy"):
+    if suffix not in (".png", ".tif", ".tiff", ".npy"):
         raise t.err("regions", expected, f"{p.name} (suffix {suffix or 'none'})")
     try:
         if suffix == ".png":
@@ -79,6 +81,9 @@ def _load_label_image(t: Any, p: Path) -> NDArray[Any]:
             a = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
             if a is None:
                 raise ValueError("not a readable PNG")
+        elif suffix in (".tif", ".tiff"):
+            import tifffile
+            a = tifffile.imread(str(p))
         else:
             a = np.load(p, allow_pickle=False)
     except Exception as exc:
@@ -87,7 +92,7 @@ def _load_label_image(t: Any, p: Path) -> NDArray[Any]:
     if a.ndim != 2:
         raise t.err("regions", expected, f"{p.name}: {a.ndim}-D array of shape {a.shape}"
                     + (" (a colour / multi-channel image)" if a.ndim == 3 else ""))
-    if suffix == ".png" and a.dtype not in (np.uint8, np.uint16):
+    if suffix != ".npy" and a.dtype not in (np.uint8, np.uint16):
         raise t.err("regions", expected, f"{p.name}: dtype {a.dtype}")
     if suffix == ".npy" and not np.issubdtype(a.dtype, np.integer):
         raise t.err("regions", expected + f" (integer dtype, labels 0..{MAX_LABEL})", f"{p.name}: dtype {a.dtype}")
@@ -107,7 +112,7 @@ def read_regions(t: Any, folder: Path, shape: tuple[int, int]) -> RegionLabels |
         if t.has("region_names"):
             raise t.err("region_names", "nothing unless regions = \"<label image>\" is given", "region_names")
         return None
-    p = t.path("regions", folder, "label image (.png or .npy)")
+    p = t.path("regions", folder, "label image (.png, .tif or .npy)")
     a = _load_label_image(t, p)
     H, W = shape
     if a.shape != (H, W):

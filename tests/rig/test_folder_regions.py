@@ -213,3 +213,26 @@ def test_regions_without_geometry_give_map_medians_and_unknown_diffusion(tmp_pat
         assert min(r["maps"]["known_pixels"]) > 0.4 * tr["hit"].sum()
         assert r["diffusion"]["status"] == ["unknown"] * 3 and "no geometry" in r["diffusion"]["reason"]
     assert corner["maps"]["known_pixels"] == [0, 0, 0] and corner["maps"]["R_d_median"] == [None] * 3
+
+
+def test_tiff_label_images_are_read_and_float_tiffs_refused(tmp_path) -> None:
+    """A 16-bit single-channel TIFF label image (e.g. from an image editor) is read like a PNG; a float TIFF is
+    refused naming the field and the file."""
+    import tifffile
+
+    from rig.estimate.capture_folder import load_capture
+    folder = tmp_path / "relief"
+    shutil.copytree(RELIEF, folder)
+    lab = np.zeros((64, 64), np.uint16)
+    lab[:, :32], lab[:, 32:] = 1, 2
+    tifffile.imwrite(folder / "regions.tif", lab)
+    tifffile.imwrite(folder / "bad.tif", lab.astype(np.float32))
+    toml = folder / "capture.toml"
+    base = toml.read_text()
+    toml.write_text(base + '\n[object]\nregions = "regions.tif"\n')
+    cap = load_capture(folder)
+    np.testing.assert_array_equal(cap.regions.labels, lab)
+    toml.write_text(base + '\n[object]\nregions = "bad.tif"\n')
+    with pytest.raises(Exception) as ei:
+        load_capture(folder)
+    assert "'object.regions'" in str(ei.value) and "bad.tif: dtype float32" in str(ei.value), str(ei.value)
