@@ -318,3 +318,44 @@ def write_albedo_apparent(cap: Any, maps: Any, geo_normals: Any, leds: Any, n_re
     def write() -> Path:
         return (write_exr if fmt == "exr" else write_float_tiff)(path, alb)
     return alb, write
+
+
+def sphere_seed_disagreement(seed_D_mm: Any, grounded: dict[str, Any], region: Any, *, albedo: Any = None,
+                             shortening: Any = None, albedo_stderr: Any = None, shortening_stderr: Any = None,
+                             confidence: float = 0.95
+                             ) -> tuple[NDArray[np.float32], NDArray[np.float32], dict[str, Any]]:
+    """The seed's per-pixel D against the grounded sphere summary's D interval (issue 16: "where the two disagree,
+    a map of that"): ``ratio`` (H, W, 3) seed D / the summary's D, ``disagree`` (H, W, 3) 1 where the seed's
+    interval lies wholly outside the summary's, 0 where they overlap, NaN where either is unknown (outside
+    ``region``, an unknown channel). The seed's interval is its point without standard errors, else
+    D_seed (1 +- z sqrt((sigma_A / A)^2 + (sigma_S / S)^2)): D_seed = k R_d / |n_z| and on a sphere n_z is the
+    shortening S (the diffuse vector along the true normal over tau1/tau0), so the frames' noise reaches it through
+    the albedo's and the shortening's standard errors (:mod:`rig.estimate.folder_noise`). Returns (ratio, disagree,
+    per-channel fractions of compared pixels that disagree and the rule)."""
+    from scipy import stats
+
+    sd = np.asarray(seed_D_mm, dtype=np.float64)
+    reg = np.asarray(region, dtype=bool)[..., None] if region is not None else np.ones(sd.shape[:2] + (1,), bool)
+    d = grounded.get("D_mm", {})
+    val = np.array([np.nan if v is None else float(v) for v in d.get("value", [None] * 3)])
+    iv = np.array([[np.nan, np.nan] if p is None else [np.nan if x is None else float(x) for x in p]
+                   for p in d.get("interval", [None] * 3)])
+    rel = np.zeros_like(sd)
+    if albedo_stderr is not None and shortening_stderr is not None:
+        z = float(stats.norm.ppf(0.5 + confidence / 2))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rel = z * np.sqrt((np.asarray(albedo_stderr, np.float64) / np.asarray(albedo, np.float64)) ** 2
+                              + (np.asarray(shortening_stderr, np.float64) / np.asarray(shortening, np.float64)) ** 2)
+        rel = np.where(np.isfinite(rel), rel, np.inf)
+    lo, hi = sd * (1 - rel), sd * (1 + rel)
+    known = reg & np.isfinite(sd) & np.isfinite(val)[None, None, :] & np.isfinite(iv).all(-1)[None, None, :]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ratio = np.where(known, sd / val[None, None, :], np.nan)
+        outside = (hi < iv[None, None, :, 0]) | (lo > iv[None, None, :, 1])
+    dis = np.where(known, outside.astype(np.float64), np.nan)
+    n = known.sum(axis=(0, 1))
+    frac = [float(np.nansum(dis[..., c]) / n[c]) if n[c] else None for c in range(3)]
+    return ratio.astype(np.float32), dis.astype(np.float32), {
+        "fraction_outside_interval": frac, "pixels_compared": n.tolist(),
+        "rule": "disagree: the seed's per-pixel D (with its noise interval when the frames' noise is stated) wholly "
+                "outside the grounded sphere summary's D interval"}

@@ -284,6 +284,8 @@ def test_marble_capture_recovers_truth(tmp_path, capsys, marble_scene, fmt, leds
     assert np.array_equal(np.isnan(D), got.masks["diffusion_unknown"])
     assert "D_seed_mm" in got.arrays
     np.testing.assert_allclose(s["seed"]["versus_grounded"]["median_ratio"], 1.0, atol=0.02)
+    assert max(s["seed"]["versus_grounded"]["fraction_outside_interval"]) < 0.05      # the seed's own sphere
+    assert Path(s["files"]["D_seed_disagree"]).is_file() and Path(s["files"]["D_seed_ratio"]).is_file()
     # the preview exists with the documented size: 6 rows (albedo, normals, D, sigma_s', sigma_a, D seed)
     import cv2
     prev = cv2.imread(str(out / "preview.png"))

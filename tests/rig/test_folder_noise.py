@@ -53,3 +53,24 @@ def test_stated_frame_noise_sizes_the_sphere_summary(tmp_path) -> None:
     assert np.all(np.asarray(summaries["stated"]["noise"]["albedo_scale_rel_stderr"]) > 0.003)
     se = np.asarray(summaries["stated"]["noise"]["albedo_stderr_median"])
     assert np.all((se > 0.005) & (se < 0.2)), se
+
+
+def test_sphere_seed_disagreement_map_uses_both_intervals() -> None:
+    """The seed's per-pixel D against the sphere summary's D interval: inside -> 0, 3x the summary -> 1, and with a
+    large stated noise on the seed's inputs (its albedo and shortening) the same 3x overlaps again -> 0; pixels
+    outside the region and unknown channels are NaN."""
+    from rig.estimate.folder_diffusion import sphere_seed_disagreement
+
+    grounded = {"D_mm": {"value": [0.2, 0.3, None], "interval": [[0.15, 0.25], [0.25, 0.35], None]}}
+    region = np.ones((4, 5), bool)
+    region[0] = False
+    seed = np.broadcast_to([0.21, 0.9, 0.1], (4, 5, 3)).copy()
+    ratio, dis, info = sphere_seed_disagreement(seed, grounded, region)
+    assert np.isnan(dis[0]).all() and np.isnan(dis[..., 2]).all()
+    assert (dis[1:, :, 0] == 0).all() and (dis[1:, :, 1] == 1).all()
+    np.testing.assert_allclose(ratio[1:, :, :2], np.broadcast_to([1.05, 3.0], (3, 5, 2)), rtol=1e-6)
+    assert info["fraction_outside_interval"][:2] == [0.0, 1.0] and info["pixels_compared"] == [15, 15, 0]
+    ones = np.ones((4, 5, 3))
+    _, dis2, _ = sphere_seed_disagreement(seed, grounded, region, albedo=ones, shortening=ones,
+                                          albedo_stderr=0.4 * ones, shortening_stderr=0.0 * ones)
+    assert (dis2[1:, :, 1] == 0).all()          # 0.9 (1 - 1.96 x 0.4) = 0.19 < 0.35: the intervals overlap

@@ -290,6 +290,7 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
                                   "sigma_s' and sigma_a are unknown (docs/gradients.md sec. 5)"}
         notes.append("diffusion unknown: no object geometry in capture.toml and no specular normals")
     seed_summary = None
+    seed_maps: dict[str, Any] = {}
     if seed_est is not None:
         assert cap.seed is not None
         seed_summary = {"estimator": "seed D = k R_d/|n_z| (Zhu et al.)", "k_mm": cap.seed.k_mm,
@@ -301,6 +302,13 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
             cmp = compare_estimates(seed_est, diffusion, region=obj)
             seed_summary["versus_grounded"] = {"median_ratio": cmp.median_ratio,
                                                "fraction_disagree": cmp.fraction_disagree, "rel_tol": cmp.rel_tol}
+            from rig.estimate.folder_diffusion import sphere_seed_disagreement
+            ratio_map, dis_map, dis_info = sphere_seed_disagreement(
+                seed_est.D_mm, diff_summary, obj, albedo=maps.albedo, shortening=diffusion.shortening,
+                albedo_stderr=None if noise is None else noise.albedo,
+                shortening_stderr=None if noise is None else noise.shortening)
+            seed_summary["versus_grounded"].update(dis_info)
+            seed_maps = {"D_seed_ratio": ratio_map, "D_seed_disagree": dis_map}
         elif "versus_seed" in diff_summary:
             seed_summary["versus_relief"] = diff_summary["versus_seed"]
     alb_app, app_write = write_albedo_apparent(cap, maps, geo_normals, leds, n_ref, Path(out_dir), fmt)
@@ -372,6 +380,10 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
         if noise is not None:
             from rig.estimate.folder_noise import write_noise_maps
             noise_files = write_noise_maps(noise, Path(out_dir), fmt)
+        for name, a in seed_maps.items():       # the seed against the grounded sphere summary
+            from rig.files.imageio import write_exr, write_float_tiff
+            noise_files[name] = (write_exr if fmt == "exr" else write_float_tiff)(
+                Path(out_dir) / (name + (".exr" if fmt == "exr" else ".tif")), a)
     except OSError as exc:
         raise CaptureError(f"{out_dir}: cannot write the maps ({exc})") from exc
     summary["files"] = {k: str(p) for k, p in {**files, **relief_files, "albedo_apparent": app_path,
