@@ -52,6 +52,11 @@ def format_summary(s: Mapping[str, Any]) -> str:
     if s.get("seed"):
         lines.append("seed D [mm] (relative, k calibrated elsewhere): "
                      + " ".join(_fmt(v) for v in s["seed"]["D_mm_median"]))
+    nz = s.get("noise")
+    if nz:
+        lines.append(f"noise ({nz['source'].get('source')}): median standard error of the albedo "
+                     + " ".join(_fmt(v) for v in nz["albedo_stderr_median"]) + ", of the diffuse normals "
+                     + " ".join(_fmt(v) for v in nz["diffuse_normal_stderr_rad_median"]) + " rad (in the intervals)")
     for n in s.get("notes", []):
         lines.append(f"note: {n}")
     return "\n".join(lines)
