@@ -532,6 +532,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "channel whose shortening is below 0.1 (a lens-like sphere)")
     q.add_argument("--reference-seed", type=_int_at_least(0), default=None, metavar="S",
                    help="--reference: seed of every reference render (default 1)")
+    q.add_argument("--reference-mode", choices=("adaptive", "legacy"), default=None,
+                   help="--reference: 'adaptive' (default: renders at spp/8 first, at spp once needed; "
+                        "docs/gradients.md) or 'legacy' (every render at --reference-spp)")
     q.add_argument("--json", action="store_true", help="print the summary as JSON instead of a table")
     q = esub.add_parser("batch", help="many sessions, scene files and capture folders on Dask workers "
                         "(docs/scale-out.md)")

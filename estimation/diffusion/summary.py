@@ -86,7 +86,8 @@ class DiffusionSummary:
 
 def summarize(dmaps: DiffusionMaps, region: ArrayLike | None = None, *, confidence: float = 0.95,
               systematic_shortening: float = 5e-4, systematic_albedo_rel: float = 2e-3,
-              fdr: str = "fit", model: str | None = None, model_bias: bool = True) -> DiffusionSummary:
+              fdr: str = "fit", model: str | None = None, model_bias: bool = True,
+              invert: bool = True) -> DiffusionSummary:
     """Robust per-channel summary over ``region`` (default: every known pixel).
 
     ``model``: the profile model of the maps (default: the one recorded in ``dmaps.provenance``, else
@@ -100,6 +101,10 @@ def summarize(dmaps: DiffusionMaps, region: ArrayLike | None = None, *, confiden
     the first-order formula for ``method="small_blur"``); the interval of every parameter is the range over the
     four corners of the (albedo, shortening) box, which is exact for these monotone maps. Otherwise (varying
     curvature) the parameters' own per-pixel medians and order-statistic intervals are reported.
+    ``invert=False`` (a known sphere): the pooled observables only - albedo and shortening with their intervals,
+    every other parameter NaN, no model bias - for callers that need nothing else (the Monte Carlo reference of
+    :mod:`estimation.gradient_correction`, whose observables are these two; issue 19: the parameter inversions
+    were ~1.8 s of a ~7 s reference call in its profile).
     """
     H, W = dmaps.albedo.shape[:2]
     if model is None:
@@ -128,7 +133,9 @@ def summarize(dmaps: DiffusionMaps, region: ArrayLike | None = None, *, confiden
                                                       A_hi * (1 + systematic_albedo_rel))
         vals["shortening"][c], ints["shortening"][c] = S_med, (S_lo - systematic_shortening,
                                                               S_hi + systematic_shortening)
-        if uniform:
+        if uniform and not invert:
+            status.append("ok")
+        elif uniform:
             rho = float(radii[0])
 
             def solve(a: float, s: float) -> tuple[dict[str, float], bool]:
@@ -164,7 +171,7 @@ def summarize(dmaps: DiffusionMaps, region: ArrayLike | None = None, *, confiden
     params = {k: ParameterSummary(vals[k], ints[k]) for k in _PARAMS}
     prov = {"confidence": confidence, "systematic_shortening": systematic_shortening,
             "systematic_albedo_rel": systematic_albedo_rel, "maps": dmaps.provenance, "model": model}
-    if model_bias:
+    if model_bias and invert:
         try:
             prov["model_bias"] = grounded_model_bias(vals["sigma_s_prime_per_mm"], vals["sigma_a_per_mm"], eta,
                                                      model, fdr=fdr)
@@ -202,13 +209,14 @@ def estimate_sphere(maps: GradientMaps, *, radius_mm: float, true_normals: Array
                     method: str = "sphere", erode_px: int = 2, confidence: float = 0.95,
                     fdr: str = "fit", inversion: str = "table", tile_rows: int = 256,
                     out_dir: str | Path | None = None, workers: int | None = None,
-                    model: str = "dipole-jensen") -> SphereEstimate:
+                    model: str = "dipole-jensen", invert_summary: bool = True) -> SphereEstimate:
     """Grounded estimate on a known sphere: per-pixel maps plus the region summary (median + interval).
 
     The true normals come from ``true_normals`` (H, W, 3) or from ``camera`` + ``center_mm`` via
     :func:`sphere_geometry`. ``region`` defaults to the pixels on the sphere, eroded by ``erode_px`` so that
     silhouette pixels (partly background) are not used; masked / grazing / dark pixels of ``maps`` are excluded.
-    ``inversion``, ``tile_rows``, ``out_dir``: see :func:`estimate_diffusion` (the summary always inverts exactly).
+    ``inversion``, ``tile_rows``, ``out_dir``: see :func:`estimate_diffusion` (the summary always inverts exactly;
+    ``invert_summary=False``: the summary's observables only, :func:`summarize`'s ``invert``).
     """
     from scipy import ndimage
 
@@ -231,4 +239,5 @@ def estimate_sphere(maps: GradientMaps, *, radius_mm: float, true_normals: Array
     dm = estimate_diffusion(maps, true_normals, sphere_radius_mm=radius_mm, method=method, region=reg, fdr=fdr,
                             inversion=inversion, tile_rows=tile_rows, out_dir=out_dir, workers=workers,
                             model=model)
-    return SphereEstimate(dm, summarize(dm, reg, confidence=confidence, fdr=fdr, model=model))
+    return SphereEstimate(dm, summarize(dm, reg, confidence=confidence, fdr=fdr, model=model,
+                                        invert=invert_summary))
