@@ -32,8 +32,13 @@ def _scene(folder: Path, opts: dict[str, Any], spp: int, iterations: int) -> dic
     except ImportError:          # the anchor's layout (before rig/ in rooms)
         from rig.scene_estimate import estimate_scene  # type: ignore[no-redef]
         from rig.scene_file import load_scene  # type: ignore[no-redef]
+    import inspect
+
+    kw = {}
+    if opts.get("reference_mode") and "reference_mode" in inspect.signature(estimate_scene).parameters:
+        kw["reference_mode"] = opts["reference_mode"]      # the current tree only (the anchor has one mode)
     return estimate_scene(load_scene(folder / "scene.toml"), model=opts["model"], reference_spp=spp,
-                          reference_iterations=iterations, reference_seed=opts.get("reference_seed"))
+                          reference_iterations=iterations, reference_seed=opts.get("reference_seed"), **kw)
 
 
 def _sphere(folder: Path, opts: dict[str, Any], spp: int, iterations: int) -> dict[str, Any]:

@@ -41,7 +41,9 @@ RIDGE_SCAN_SPP_DIVISOR, RIDGE_SCAN_MIN_SPP = 4, 8
 #: (estimation.model_correction.RENDER_NOISE_FRACTION); "legacy": every render at reference_spp
 REFERENCE_SPP_LEVEL_DIVISORS, REFERENCE_MIN_SPP = (8, 4, 2, 1), 8
 REFERENCE_MODES = ("adaptive", "legacy")
-DEFAULT_REFERENCE_MODE = "adaptive"
+#: the default stays "legacy" until a full zoo run (benchmarks/scene_zoo.py) has checked "adaptive" on every scene:
+#: measured so far on z10 alone (benchmarks/reference_speed.py; docs/model-error.md)
+DEFAULT_REFERENCE_MODE = "legacy"
 
 
 def _irradiance(scene: Scene, patches: Any) -> Array:
@@ -531,7 +533,8 @@ def run_cli(args: Any) -> int:
                             reference_spp=getattr(args, "reference_spp", None),
                             reference_iterations=getattr(args, "reference_iterations", None),
                             reference_seed=getattr(args, "reference_seed", None),
-                            shadows=getattr(args, "shadows", None), patches=getattr(args, "patches", None))
+                            shadows=getattr(args, "shadows", None), patches=getattr(args, "patches", None),
+                            reference_mode=getattr(args, "reference_mode", None))
     out = getattr(args, "out", None)
     out_path = Path(out) if out is not None else Path(args.scene).with_suffix(".estimate.json")
     text = json.dumps(result, indent=2, allow_nan=False) + "\n"
