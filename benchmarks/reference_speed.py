@@ -4,7 +4,7 @@ What. Two items, each estimated by two source trees in subprocesses, one after t
 
 - ``anchor``: the code at the start of issue 19 (:data:`ANCHOR_COMMIT`, the parent of 9b1ed69, the first commit of
   the issue: ``benchmarks/mc_vs_mitsuba.py``'s first version), checked out once as a ``git worktree`` under
-  ``benchmarks/out/anchor-<commit>`` (git-ignored; its numba cache stays there);
+  ``~/.cache/sssrig/reference-speed/anchor-<commit>`` (outside the checkout; its numba cache stays there);
 - ``current``: this checkout.
 
 Items: (a) the zoo's median single-image scene, z10 (an 18 mm skin1-G cube under one point light, eta 1.5, 64 x 64
@@ -58,10 +58,13 @@ SPHERE_OPTS = {"spp": 64, "iterations": 8, "reference": {"seed": 1}}
 
 
 def anchor_tree(commit: str = ANCHOR_COMMIT) -> Path:
-    """A git worktree of ``commit`` under benchmarks/out (made once; detached, never edited)."""
+    """A git worktree of ``commit`` (made once; detached, never edited) outside this checkout, so that nothing scanning
+    the tree (tests/test_architecture.py, lint-imports) sees the anchor's modules: ``$SSSRIG_ANCHOR_TREE``, else
+    ``$XDG_CACHE_HOME/sssrig/reference-speed/anchor-<commit>`` (default ``~/.cache``)."""
     full = subprocess.run(["git", "-C", str(ROOT), "rev-parse", commit], check=True, capture_output=True,
                           text=True).stdout.strip()
-    tree = HERE / "out" / f"anchor-{full[:12]}"
+    cache = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "sssrig" / "reference-speed"
+    tree = Path(os.environ.get("SSSRIG_ANCHOR_TREE") or cache / f"anchor-{full[:12]}")
     if not (tree / "rig").is_dir():
         tree.parent.mkdir(parents=True, exist_ok=True)
         subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", str(tree), full], check=True,
