@@ -208,11 +208,19 @@ def test_longest_expected_first_order_and_its_makespan(tmp_path: Path) -> None:
 
     opts = {"model": "mc-table+reference", "method": None, "reference_spp": None, "reference_iterations": None,
             "reference_seed": None}
-    small, big = scene("small", 48, 48), scene("big", 64, 64)
-    own = scene("own", 48, 48, "[estimation]\nreference_spp = 512\nreference_iterations = 2\n")
+    import struct
+    for name, colour_type in (("grey.png", 0), ("rgb.png", 2)):    # a PNG header: signature, IHDR, colour type
+        (tmp_path / name).write_bytes(b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + b"IHDR"
+                                      + struct.pack(">IIBB", 48, 48, 8, colour_type) + b"\0\0\0")
+    grey = '[image]\npath = "grey.png"\n'
+    small, big = scene("small", 48, 48, grey), scene("big", 64, 64, grey)
+    own = scene("own", 48, 48, grey + "[estimation]\nreference_spp = 512\nreference_iterations = 2\n")
+    rgb = scene("rgb", 48, 48, '[image]\npath = "rgb.png"\n')
     assert expected_cost(big, opts) == (1, 64 * 64 * 128 * 4)          # the scene-file defaults: 128 spp, 4 renders
     assert expected_cost(own, opts) == (1, 48 * 48 * 512 * 2)          # the scene's own [estimation]
     assert expected_cost(own, {**opts, "reference_spp": 8, "reference_iterations": 1}) == (1, 48 * 48 * 8)
+    assert expected_cost(rgb, opts) == (1, 3 * 48 * 48 * 128 * 4)      # three channels: three times the paths
+    assert expected_cost(scene("noimage", 48, 48), opts) == expected_cost(rgb, opts)   # unknown: 3 channels
     assert expected_cost(small, {**opts, "model": "mc-table"}) == (1, 48 * 48)   # no reference: pixels
     assert expected_cost(small, opts, {"cpu_seconds": 3.5}) == (2, 3.5)        # measured before: first
     folder = tmp_path / "cap"
