@@ -374,13 +374,13 @@ def test_sample_count_matched_to_the_fits_noise(observed, top_noise, want_spp):
     pilot render is not counted against max_iterations; the estimate and its interval hold the truth either way."""
     obs, sig = observed
     ref = Levelled(_distorted_value, rel_noise_at_top=top_noise)
-    r = estimate_with_reference(obs, PAT, LIGHT, ETA, ref, noise_sigma=sig, max_iterations=6, model_error=0.005)
+    r = estimate_with_reference(obs, PAT, LIGHT, ETA, ref, noise_sigma=sig, max_iterations=3, model_error=0.005)
     info = r.extra["sample_count_levels"]
     assert info["first_spp"] == 16 and info["chosen_spp"] == want_spp, info
     assert info["levels"] == [16, 32, 64, 128] and info["render_to_fit_sd_ratio"] > 0
     assert ref.spp_calls[0] == 16 and set(ref.spp_calls[1:]) == {want_spp}, ref.spp_calls
     assert [s["spp"] for s in r.extra["reference"][1:]] == ref.spp_calls
-    assert len(ref.spp_calls) <= 6 + (want_spp != 16)
+    assert len(ref.spp_calls) <= 3 + (want_spp != 16)
     lo, hi = r.sigma_s_prime_ci_per_mm[0]
     assert lo <= TRUTH[0] <= hi, (lo, hi)
     if r.extra["status"]["sigma_s_prime_per_mm"] == ["ok"]:
