@@ -34,7 +34,8 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 sys.path.insert(0, str(HERE))
 
-from rig.estimate.batch import BatchOptions, classify_item, content_sha256, local_cluster, run_batch  # noqa: E402
+from rig.estimate.batch import (BatchOptions, classify_item, content_sha256, expected_cost,  # noqa: E402
+                                list_schedule_makespan, local_cluster, run_batch, submission_order)
 
 
 def _warm() -> int:
@@ -86,12 +87,55 @@ def run_workers(items: list[Path], opts: BatchOptions, workers: int, out: Path) 
             client.gather(client.map(_noop, range(200), pure=False))
             overhead = (time.perf_counter() - t2) / 200
     assert rep.ok, [r for r in rep.records if r["status"] == "failed"]
-    return {"workers": workers, "start_and_warm_s": t_start, "wall_s": wall,
+    render_s = {}
+    for r in rep.records:       # the reference renders' own seconds (the part render chunks could spread)
+        res = json.loads((out / r["key"] / "result.json").read_text())
+        ref = res.get("reference") or {}
+        render_s[r["key"]] = float(sum(float(x.get("seconds") or 0.0) for x in
+                                       list(ref.get("renders") or []) + list(ref.get("scan_renders") or [])))
+    return {"item_render_seconds": render_s,"workers": workers, "start_and_warm_s": t_start, "wall_s": wall,
             "item_seconds": {r["key"]: r["seconds"] for r in rep.records},
             "item_cpu_seconds": {r["key"]: r["cpu_seconds"] for r in rep.records},
             "digests": {r["key"]: r["digest"] for r in rep.records},
             "worker_pids": sorted({r["worker_pid"] for r in rep.records}),
             "load_before": load0, "load_after": load1, "dask_overhead_per_task_s": overhead}
+
+
+def makespans(items: list[Path], opts: BatchOptions, one: dict[str, Any], two: dict[str, Any]) -> dict[str, Any]:
+    """Expected 2-worker makespans (rig.estimate.batch.list_schedule_makespan) from the per-item CPU seconds (the
+    smaller of the 1- and the 2-worker run's: a worker's first item also pays the numba kernels the warm-up did not
+    load, measured up to ~19 s; each worker given one core): in the given order (the submission order before the longest-first rule),
+    in the batch's order now (rig.estimate.batch.expected_cost without a previous run: the static estimate), and
+    longest-first by the recorded costs (what a re-run with earlier markers submits); with render chunks, idealised:
+    greedy in the batch's order; the time the last item runs alone has its renders (in that item's proportion of
+    render seconds) shared by both workers (chunking's transfers and the chunks' own overhead not modelled)."""
+    resolved = [classify_item(p) for p in items]
+    best = [one if one["item_cpu_seconds"][it.key] <= two["item_cpu_seconds"][it.key] else two for it in resolved]
+    cost = [float(r["item_cpu_seconds"][it.key]) for r, it in zip(best, resolved)]
+    wall = [float(r["item_seconds"][it.key]) for r, it in zip(best, resolved)]
+    rend = [min(c, float(r["item_render_seconds"][it.key]) * (c / w if w > 0 else 1.0))
+            for r, it, c, w in zip(best, resolved, cost, wall)]   # render wall seconds scaled to CPU seconds
+    static = [expected_cost(it, opts.for_kind(it.kind)) for it in resolved]
+    order = submission_order(static)
+    lpt = sorted(range(len(cost)), key=lambda i: -cost[i])
+    # chunks, idealised: the batch's order; after the first worker runs out of items (t_idle) only the last item
+    # runs; its remaining time R holds renders in the item's own proportion, which chunks share over both workers
+    free = [0.0, 0.0]
+    last = order[0]
+    for i in order:
+        k = min(range(2), key=free.__getitem__)
+        free[k] += cost[i]
+        if free[k] >= max(free):
+            last = i
+    t_idle, remaining = min(free), max(free) - min(free)
+    share = rend[last] / cost[last] if cost[last] > 0 else 0.0
+    chunked = t_idle + remaining * (1.0 - share) + remaining * share / 2
+    return {"sum_s": sum(cost), "longest_s": max(cost), "given_order_s": list_schedule_makespan(cost, 2),
+            "batch_order_s": list_schedule_makespan([cost[i] for i in order], 2),
+            "lpt_recorded_s": list_schedule_makespan([cost[i] for i in lpt], 2),
+            "lower_bound_s": max(sum(cost) / 2, max(cost)), "chunked_ideal_s": chunked,
+            "render_share": sum(rend) / sum(cost), "static_ties": len(static) - len(set(static)),
+            "item_cpu_s_given_order": cost, "item_render_cpu_s_given_order": rend}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -121,6 +165,7 @@ def main(argv: list[str] | None = None) -> int:
             rep = run_batch(items, Path(tmp) / "serial", options=opts, workers=0)
             serial = {"wall_s": time.perf_counter() - t, "digests": {r["key"]: r["digest"] for r in rep.records}}
     one, two = runs[1], runs[2]
+    doc_makespan = makespans(items, opts, one, two)
     speedup = one["wall_s"] / two["wall_s"]
     identical = one["digests"] == two["digests"]
     item_s = list(one["item_seconds"].values())
@@ -131,6 +176,7 @@ def main(argv: list[str] | None = None) -> int:
            "serial_wall_s": None if serial is None else serial["wall_s"],
            "median_item_s_1_worker": statistics.median(item_s), "content_hash_s_per_item": hash_s,
            "dask_overhead_per_task_s": two["dask_overhead_per_task_s"], "cpu_count": os.cpu_count(),
+           "expected_makespan_2_workers": doc_makespan,
            "cpu_rate_ratio_2_vs_1": (sum(two["item_cpu_seconds"].values()) / two["wall_s"])
            / (sum(one["item_cpu_seconds"].values()) / one["wall_s"])}
     if args.json:
@@ -151,6 +197,16 @@ def main(argv: list[str] | None = None) -> int:
     print(f"bit-identical 1 vs 2 workers: {identical}")
     if serial is not None:
         print(f"bit-identical serial (in process, {serial['wall_s']:.1f} s) vs workers: {doc['bit_identical_serial']}")
+    m = doc_makespan
+    print(f"expected makespan of 2 workers from the items' CPU seconds (sum {m['sum_s']:.1f} s, longest "
+          f"{m['longest_s']:.1f} s; greedy list schedule, no overhead): given order {m['given_order_s']:.1f} s "
+          f"({m['sum_s'] / m['given_order_s']:.2f}x of 1 worker), batch's order (static cost estimate; "
+          f"{m['static_ties']} ties) {m['batch_order_s']:.1f} s ({m['sum_s'] / m['batch_order_s']:.2f}x), "
+          f"longest-first by the recorded costs (a re-run) {m['lpt_recorded_s']:.1f} s "
+          f"({m['sum_s'] / m['lpt_recorded_s']:.2f}x), bound max(sum/2, longest) {m['lower_bound_s']:.1f} s "
+          f"({m['sum_s'] / m['lower_bound_s']:.2f}x); with render chunks (renders {m['render_share']:.0%} of the "
+          f"CPU, idealised: the last item's renders split over both workers) {m['chunked_ideal_s']:.1f} s "
+          f"({m['sum_s'] / m['chunked_ideal_s']:.2f}x)")
     print(f"per task: median item {doc['median_item_s_1_worker']:.2f} s (1 worker), Dask overhead "
           f"{1e3 * doc['dask_overhead_per_task_s']:.1f} ms, content hash {1e3 * hash_s:.1f} ms")
     return 0

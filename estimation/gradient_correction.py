@@ -71,6 +71,9 @@ from .diffusion import DiffusionSummary, invert_sphere_scalar, sphere_albedo, sp
 from .single_image.validity import MAX_OK_INTERVAL_RATIO
 from .sphere_scan import needs_scan, scan_start
 
+#: with a reference of several sample-count levels: at most this many renders per level below the top
+MAX_LOW_LEVEL_RENDERS: int = 2
+
 __all__ = ["SphereObservables", "SphereReference", "SphereReferenceStep", "SphereReferenceEstimate",
            "sphere_model_observables", "estimate_sphere_with_reference"]
 
@@ -149,6 +152,7 @@ class SphereReferenceStep:
     censored: list[bool]
     change: float  # max relative change |p_i' / p_i - 1| over parameters and channels
     render_seconds: float
+    spp: int = 0      # the reference's sample count for this render where it states one (0: unknown)
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -284,7 +288,10 @@ def estimate_sphere_with_reference(observed: SphereObservables | DiffusionSummar
     :class:`~estimation.diffusion.DiffusionSummary` of :func:`~estimation.diffusion.estimate_sphere`, which
     carries them); ``reference``: ``(sigma_s' (C,), sigma_a (C,), eta, seed) -> SphereObservables`` computed from
     a render of the same capture exactly as ``observed`` was (same maps, same region), called at most
-    ``max_iterations`` times, always with ``seed``; ``radius_mm``, ``eta``: the known sphere; ``rel_tol`` and
+    ``max_iterations`` times at its full sample count, always with ``seed`` (a reference with sample-count levels,
+    ``n_levels`` / ``set_level(i)`` / ``current_spp``, is first called at its cheapest level: the loop stops there
+    only when the stop rule holds and every usable channel's D interval is narrow enough to be "ok", else moves up
+    after a settled step or :data:`MAX_LOW_LEVEL_RENDERS` renders; issue 19); ``radius_mm``, ``eta``: the known sphere; ``rel_tol`` and
     the stop rule: module docstring; ``max_step``: largest change of log sigma_s' or log sigma_a in one
     quasi-Newton step (a trust region; the first, defect-correction step is not limited);
     ``sigma_a_floor_rel``: render points keep sigma_a >= this fraction of sigma_t' (censored starts); ``fdr``:
@@ -353,8 +360,26 @@ def estimate_sphere_with_reference(observed: SphereObservables | DiffusionSummar
     kA = kB = np.full(n_ch, np.nan)
     cens = cens0.copy()
     conv_c = np.zeros(n_ch, dtype=bool)
-    for it in range(1, max_iterations + 1):
+    # adaptive sample counts (issue 19; a reference with n_levels / set_level, e.g.
+    # rig.estimate.reference.mc_reference.GradientsMonteCarloReference with spp_levels): start at the cheapest level;
+    # stop there only when the stop rule holds with every usable channel's D interval narrow enough to be "ok" (the
+    # reference's noise is inside it), else move up once the steps settle within that level's error or after
+    # MAX_LOW_LEVEL_RENDERS renders; only top-level renders count towards max_iterations
+    n_levels = max(1, int(getattr(reference, "n_levels", 1)))
+    level = 0
+    if n_levels > 1:
+        reference.set_level(0)
+    low_renders = full_renders = 0
+    it = 0
+    while full_renders < max_iterations:
+        it += 1
+        at_top = level == n_levels - 1
+        if at_top:
+            full_renders += 1
+        else:
+            low_renders += 1
         p = np.exp(x)
+        spp_now = int(getattr(reference, "current_spp", 0) or 0)
         t_r = time.perf_counter()
         ref = _check_observables(reference(p[:, 0].copy(), p[:, 1].copy(), eta_f, int(seed)), "reference result",
                                  n_ch)
@@ -423,13 +448,24 @@ def estimate_sphere_with_reference(observed: SphereObservables | DiffusionSummar
         steps.append(SphereReferenceStep(it, p[:, 0].tolist(), p[:, 1].tolist(), kA.tolist(), kB.tolist(),
                                          np.where(ok, p_new[:, 0], np.nan).tolist(),
                                          np.where(ok, np.where(cens, 0.0, p_new[:, 1]), np.nan).tolist(),
-                                         cens.tolist(), change, render_s))
+                                         cens.tolist(), change, render_s, spp_now))
         tol = np.maximum(np.log1p(rel_tol), 0.25 * ci)
         tol[:, 1] = np.where(cens, np.inf, tol[:, 1])
         conv_c = use & np.all(np.abs(step) <= tol, axis=1)
-        if np.all(np.abs(step[use]) <= tol[use]):
+        settled = bool(np.all(np.abs(step[use]) <= tol[use]))
+        if settled and not at_top:
+            # a cheap level ends the loop only where its D interval is already narrow enough to be "ok"
+            st_n = np.exp(x_new).sum(axis=1)
+            w_n = np.exp(x_new) / st_n[:, None]
+            sd_n = np.sqrt(np.einsum("ci,cij,cj->c", w_n, _log_cov(B, np.hypot(sd_obs, sd_ref)), w_n))
+            settled = bool(np.all(np.exp(2 * 1.96 * sd_n[use]) <= MAX_OK_INTERVAL_RATIO))
+        if settled:
             converged = True
             break
+        if not at_top and (bool(np.all(np.abs(step[use]) <= tol[use])) or low_renders >= MAX_LOW_LEVEL_RENDERS):
+            level += 1
+            low_renders = 0
+            reference.set_level(level)
         x_prev, d_prev, x = x, d, x_new
     p_new = np.exp(x_new)
     ssp_f = np.where(ok, p_new[:, 0], np.nan)

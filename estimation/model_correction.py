@@ -119,6 +119,11 @@ START_SSP_RANGE: tuple[float, float] = (0.02, 50.0)
 TRUST_RADIUS_START, TRUST_RADIUS_MIN, TRUST_RADIUS_MAX = 0.7, 0.01, 3.0
 #: step of the fast model's central differences in log parameters
 _FAST_FD_STEP = 1e-3
+#: a reference with sample-count levels (issue 19): after its first render, at the cheapest level, the loop renders at
+#: the cheapest level whose noise, carried to the parameters (sd ~ 1/sqrt(spp)), is at most this fraction of the plain
+#: fit's standard error, every channel and parameter: it then adds at most 1 + 0.5^2 = 1.25x to their variance
+#: (~12 % to an interval, which carries it: the refits weigh the correction's variance)
+RENDER_NOISE_FRACTION: float = 0.5
 
 
 class ReferenceRenderer(Protocol):
@@ -153,6 +158,7 @@ class ReferenceStep:
     additive_fraction: list[float] = field(default_factory=list)
     derivatives: bool = False
     parameter_map: list[list[list[float]]] = field(default_factory=list)  # B per channel (space mapping)
+    spp: int = 0      # the reference's sample count for this render where it states one (0: unknown)
 
     def as_dict(self) -> dict[str, Any]:
         return dict(self.__dict__)
@@ -319,7 +325,12 @@ def estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, ligh
 
     ``observed_radiance``, ``noise_sigma``, ``patches``, ``lights``, ``eta`` and ``fit_kwargs`` are those of
     :func:`estimation.single_image.estimate_single_image` ("direct" method). ``reference`` is called at most
-    ``max_iterations`` times (at least ``min_iterations``), always with ``seed``. ``rel_tol`` > 0 also counts a
+    ``max_iterations`` times (at least ``min_iterations``), always with ``seed``; a reference with sample-count
+    levels (``n_levels``, ``set_level(i)``, ``current_spp``: :class:`rig.estimate.reference.mc_reference.
+    MonteCarloReference` with ``spp_levels``) renders first at its cheapest level, and from then on at the cheapest
+    level whose noise is at most :data:`RENDER_NOISE_FRACTION` of the fit's (:func:`_noise_matched_level`; that
+    first render is not counted against ``max_iterations`` when the level changes; issue 19: "adaptive sample counts
+    that stop when the correction's noise is below the fit's"). ``rel_tol`` > 0 also counts a
     refit within that relative change of its accepted point as converged. ``scan_reference``, optional: a cheap
     renderer of the same scene (low spp; derivatives with respect to log sigma_a help) for the start: channels whose
     plain fit is at its range's edge or weak on the ridge of constant albedo start from the best point of a coarse
@@ -336,6 +347,46 @@ def estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, ligh
         return _estimate_with_reference(observed_radiance, patches, lights, eta, reference, noise_sigma, base_model,
                                         max_iterations, rel_tol, seed, smooth_spacings, min_iterations, fit_kwargs,
                                         scan_reference)
+
+
+def _noise_matched_level(reference: Any, q: Array, se: Array, jac: Array, metric: Array, se_fit: Array
+                         ) -> tuple[int, float]:
+    """The cheapest sample-count level of ``reference`` whose render noise, carried to the parameters, is at most
+    :data:`RENDER_NOISE_FRACTION` of the fit's standard errors ``se_fit`` (C, 2; log parameters, the plain fit's).
+
+    The render's per-patch standard errors ``se`` (m, C) at ``reference.current_spp`` enter the weighted
+    least-squares solution through the model's Jacobian ``jac`` (m, C, 2) with weights 1 / ``metric``^2: its
+    covariance is A^-1 (J^T W S W J) A^-1, A = J^T W J (the sandwich of a linear fit; Seber & Wild, Nonlinear
+    Regression, 1989, sec. 2.1); it scales as 1 / spp. Parameters whose ``se_fit`` is not finite are left out;
+    none left: the top level. Returns (level, the largest ratio render sd / fit se at the rendered spp)."""
+    n_ch = q.shape[1]
+    ratios = []
+    for c in range(n_ch):
+        ok = np.isfinite(q[:, c]) & np.isfinite(se[:, c]) & np.isfinite(metric[:, c]) & (metric[:, c] > 0) \
+            & np.all(np.isfinite(jac[:, c]), axis=1)
+        if ok.sum() < 3:
+            continue
+        j = jac[ok, c]
+        w = 1.0 / metric[ok, c] ** 2
+        a = (j * w[:, None]).T @ j
+        b = (j * (w ** 2 * se[ok, c] ** 2)[:, None]).T @ j
+        try:
+            a_inv = np.linalg.inv(a)
+        except np.linalg.LinAlgError:
+            continue
+        sd = np.sqrt(np.maximum(np.diag(a_inv @ b @ a_inv), 0.0))
+        for k in range(2):
+            if np.isfinite(se_fit[c, k]) and se_fit[c, k] > 0 and np.isfinite(sd[k]):
+                ratios.append(sd[k] / se_fit[c, k])
+    levels = [int(x) for x in reference.spp_levels]
+    if not ratios:
+        return len(levels) - 1, float("nan")
+    r = float(max(ratios))
+    spp0 = float(reference.current_spp)
+    for i, n in enumerate(levels):
+        if r * np.sqrt(spp0 / n) <= RENDER_NOISE_FRACTION:
+            return i, r
+    return len(levels) - 1, r
 
 
 def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lights: Lights, eta: float,
@@ -416,8 +467,29 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
     last_step = np.zeros((n_ch, 2))
     cut_last = np.zeros(n_ch, bool)
     rendered: list[tuple[Array, Array]] = []  # (render point, its radiance) for the flat-likelihood check
-    for it in range(1, max_iterations + 1):
+    # sample-count levels (issue 19): the first render at the cheapest level picks the level of the others
+    n_levels = max(1, int(getattr(reference, "n_levels", 1)))
+    if n_levels > 1:
+        reference.set_level(0)
+    level_info: dict[str, Any] | None = None
+    n_max = max_iterations
+    it = 0
+    while it < n_max:
+        it += 1
+        spp_now = int(getattr(reference, "current_spp", 0) or 0)
         q, se, dq, dq_se, render_s = _render(reference, theta_try, eta_f, seed, patches, n_ch)
+        if n_levels > 1 and level_info is None:
+            m0, dm0 = _fast_model(patches, e_t, eta_f, theta_try, base_model)
+            with np.errstate(all="ignore"):
+                k0 = np.where(np.abs(m0) > 0, q / m0, np.nan)
+            level, ratio0 = _noise_matched_level(reference, q, se, dm0 * k0[..., None],
+                                                 _metric(sig, se, q, model_error), _standard_errors(start, _theta(start)))
+            level_info = {"first_spp": spp_now, "render_to_fit_sd_ratio": ratio0,
+                          "fraction": RENDER_NOISE_FRACTION, "levels": [int(x) for x in reference.spp_levels],
+                          "chosen_spp": int(reference.spp_levels[level])}
+            if level > 0:
+                reference.set_level(level)
+                n_max += 1          # the cheap first render does not count against max_iterations
         rendered.append((theta_try.copy(), q.copy()))
         with_derivatives = dq is not None
         good = np.isfinite(q) & np.isfinite(se)
@@ -532,7 +604,8 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
                                    fit_s, *kstats, float(np.expm1(np.max(np.abs(step)))),
                                    np.exp(theta_try[:, 0]).tolist(), np.exp(theta_try[:, 1]).tolist(),
                                    accepted.tolist(), rho.tolist(), radius.max(axis=1).tolist(), objective.tolist(),
-                                   np.mean(acc.additive, axis=0).tolist(), with_derivatives, acc.matrix.tolist()))
+                                   np.mean(acc.additive, axis=0).tolist(), with_derivatives, acc.matrix.tolist(),
+                                   spp_now))
         if it >= min_iterations and np.all(converged):
             break
         theta_try = theta_fit
@@ -627,7 +700,7 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
              "interval_propagation": propagation, "reference_derivatives": with_derivatives,
              "last_step_cut_by_trust_region": cut_last.tolist(),
              "reference_iterations": len(steps) - 1, "model_bias": bias, "base_model": base_model,
-             "ridge_scan": scan_info,
+             "ridge_scan": scan_info, "sample_count_levels": level_info,
              "seconds_total": time.perf_counter() - t_all}
     msg = result.message
     if not with_derivatives and not np.all(propagation.get("slope_known", [[True]])):

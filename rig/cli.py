@@ -491,6 +491,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="mc-table+reference: at most K reference renders (default: the scene file's, else 4)")
     q.add_argument("--reference-seed", type=_int_at_least(0), default=None, metavar="S",
                    help="mc-table+reference: seed of every reference render (default: the scene file's, else 1)")
+    q.add_argument("--reference-mode", choices=("legacy", "adaptive"), default=None,
+                   help="mc-table+reference: 'legacy' (default: every render at --reference-spp) or 'adaptive' "
+                        "(a first render at spp/8, then the sample count whose noise is at most half the fit's; "
+                        "docs/model-error.md)")
     q.add_argument("--shadows", choices=["auto", "on", "off"], default=None,
                    help="cast shadows of the lights on the mesh (default: the scene file's [estimation].shadows, "
                         "else auto = on for non-convex meshes; docs/visibility.md)")
@@ -532,6 +536,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "channel whose shortening is below 0.1 (a lens-like sphere)")
     q.add_argument("--reference-seed", type=_int_at_least(0), default=None, metavar="S",
                    help="--reference: seed of every reference render (default 1)")
+    q.add_argument("--reference-mode", choices=("adaptive", "legacy"), default=None,
+                   help="--reference: 'adaptive' (default: renders at spp/8 first, at spp once needed; "
+                        "docs/gradients.md) or 'legacy' (every render at --reference-spp)")
     q.add_argument("--json", action="store_true", help="print the summary as JSON instead of a table")
     q = esub.add_parser("batch", help="many sessions, scene files and capture folders on Dask workers "
                         "(docs/scale-out.md)")

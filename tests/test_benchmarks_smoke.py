@@ -116,3 +116,19 @@ def test_mc_vs_mitsuba_benchmark_quick_prints_table(tmp_path):
         assert s["seconds_ours"] > 0 and s["seconds_mitsuba"] > 0 and s["compared_pixels"] > 0
         for ch in s["channels"]:
             assert ch["efficiency_ours"] > 0 and ch["efficiency_mitsuba"] > 0 and ch["mean_ratio"] > 0
+
+
+def test_reference_speed_same_accuracy_rule_and_batch_makespans():
+    """benchmarks/reference_speed.py's "same accuracy" (per channel: both within 10 %, or the new error at most the
+    old one plus the new interval's half-width; no "ok" lost) and benchmarks/batch.py's modelled makespans (the
+    greedy list schedule of rig.estimate.batch), without running either benchmark (both take minutes)."""
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    from reference_speed import same_accuracy
+
+    old = {"err": [-0.015, 0.30], "status": ["ok", "weak"], "truth": [1.0, 1.0], "interval": [[0.9, 1.1], [0.5, 2.0]]}
+    assert same_accuracy(old, {**old, "err": [-0.08, 0.50]}) == [True, True]          # within 10 %; 0.5 <= 0.3 + 0.75
+    assert same_accuracy(old, {**old, "err": [0.12, 0.30]})[0] is False                  # 12 % > 1.5 % + 10 %
+    assert same_accuracy(old, {**old, "status": ["weak", "weak"]})[0] is False           # an "ok" lost
+    from rig.estimate.batch import list_schedule_makespan
+    assert list_schedule_makespan([7.0, 12.3, 4.2, 3.7, 3.4, 3.7, 7.5, 16.0], 2) > list_schedule_makespan(
+        [16.0, 7.0, 12.3, 4.2, 3.7, 3.4, 3.7, 7.5], 2)

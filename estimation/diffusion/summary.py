@@ -90,7 +90,7 @@ class DiffusionSummary:
 def summarize(dmaps: DiffusionMaps, region: ArrayLike | None = None, *, confidence: float = 0.95,
               systematic_shortening: float = 5e-4, systematic_albedo_rel: float = 2e-3,
               fdr: str = "fit", model: str | None = None, model_bias: bool = True,
-              pixel_stderr: Mapping[str, ArrayLike] | None = None) -> DiffusionSummary:
+              pixel_stderr: Mapping[str, ArrayLike] | None = None, invert: bool = True) -> DiffusionSummary:
     """Robust per-channel summary over ``region`` (default: every known pixel).
 
     ``model``: the profile model of the maps (default: the one recorded in ``dmaps.provenance``, else
@@ -112,6 +112,10 @@ def summarize(dmaps: DiffusionMaps, region: ArrayLike | None = None, *, confiden
     standard error under the stated Gaussian noise; the common part added in quadrature to the albedo's),
     so a region whose pixels are noisier than their scatter shows (correlated noise, a smoothed demosaic) still
     gets the width its noise implies; pixels with an infinite standard error are left out of the summary.
+    ``invert=False`` (a known sphere): the pooled observables only - albedo and shortening with their intervals,
+    every other parameter NaN, no model bias - for callers that need nothing else (the Monte Carlo reference of
+    :mod:`estimation.gradient_correction`, whose observables are these two; issue 19: the parameter inversions
+    were ~1.8 s of a ~7 s reference call in its profile).
     """
     H, W = dmaps.albedo.shape[:2]
     if model is None:
@@ -156,7 +160,9 @@ def summarize(dmaps: DiffusionMaps, region: ArrayLike | None = None, *, confiden
                                                       A_hi * (1 + systematic_albedo_rel))
         vals["shortening"][c], ints["shortening"][c] = S_med, (S_lo - systematic_shortening,
                                                               S_hi + systematic_shortening)
-        if uniform:
+        if uniform and not invert:
+            status.append("ok")
+        elif uniform:
             rho = float(radii[0])
 
             def solve(a: float, s: float) -> tuple[dict[str, float], bool]:
@@ -194,7 +200,7 @@ def summarize(dmaps: DiffusionMaps, region: ArrayLike | None = None, *, confiden
             "systematic_albedo_rel": systematic_albedo_rel, "maps": dmaps.provenance, "model": model,
             "pixel_noise": "frames' noise propagated (at least the median's standard error under it)"
             if pixel_stderr is not None else "order statistics of the pixels' scatter"}
-    if model_bias:
+    if model_bias and invert:
         try:
             prov["model_bias"] = grounded_model_bias(vals["sigma_s_prime_per_mm"], vals["sigma_a_per_mm"], eta,
                                                      model, fdr=fdr)
@@ -232,14 +238,15 @@ def estimate_sphere(maps: GradientMaps, *, radius_mm: float, true_normals: Array
                     method: str = "sphere", erode_px: int = 2, confidence: float = 0.95,
                     fdr: str = "fit", inversion: str = "table", tile_rows: int = 256,
                     out_dir: str | Path | None = None, workers: int | None = None,
-                    model: str = "dipole-jensen", pixel_stderr: Mapping[str, ArrayLike] | None = None
-                    ) -> SphereEstimate:
+                    model: str = "dipole-jensen", pixel_stderr: Mapping[str, ArrayLike] | None = None,
+                    invert_summary: bool = True) -> SphereEstimate:
     """Grounded estimate on a known sphere: per-pixel maps plus the region summary (median + interval).
 
     The true normals come from ``true_normals`` (H, W, 3) or from ``camera`` + ``center_mm`` via
     :func:`sphere_geometry`. ``region`` defaults to the pixels on the sphere, eroded by ``erode_px`` so that
     silhouette pixels (partly background) are not used; masked / grazing / dark pixels of ``maps`` are excluded.
-    ``inversion``, ``tile_rows``, ``out_dir``: see :func:`estimate_diffusion` (the summary always inverts exactly).
+    ``inversion``, ``tile_rows``, ``out_dir``: see :func:`estimate_diffusion` (the summary always inverts exactly;
+    ``invert_summary=False``: the summary's observables only, :func:`summarize`'s ``invert``).
     ``pixel_stderr``: the frames' noise propagated to the albedo and shortening maps (:func:`summarize`).
     """
     from scipy import ndimage
@@ -264,4 +271,4 @@ def estimate_sphere(maps: GradientMaps, *, radius_mm: float, true_normals: Array
                             inversion=inversion, tile_rows=tile_rows, out_dir=out_dir, workers=workers,
                             model=model)
     return SphereEstimate(dm, summarize(dm, reg, confidence=confidence, fdr=fdr, model=model,
-                                        pixel_stderr=pixel_stderr))
+                                        pixel_stderr=pixel_stderr, invert=invert_summary))

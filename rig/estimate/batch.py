@@ -25,6 +25,12 @@ A worker that dies mid-batch (killed, out of memory, a lost node) takes its runn
 re-runs the task elsewhere (Dask's ``distributed.scheduler.allowed-failures``, default 3) and, since the item
 folder is only committed by its marker, nothing half-written survives.
 
+Order: the items are submitted longest-expected-first (:func:`expected_cost`: the CPU seconds an earlier run of the
+item recorded in its marker, else pixels x channels x spp x renders of a scene reference, else the input's bytes), each with
+Dask ``priority`` by that rank, so no long item starts last and runs alone (list scheduling's longest-processing-time
+rule, Graham 1969: makespan within 4/3 - 1/(3W) of the optimum; :func:`list_schedule_makespan`). The order changes
+when items run, never their numbers.
+
 Render chunks (``render_chunk_rows`` > 0, CLI ``--render-chunk-rows``): inside an item, each Monte Carlo reference
 render of a scene file is split into chunks of rows, each a task on the cluster (:func:`chunked_render`); every pixel
 keeps its random stream, so the numbers do not change. The gradient reference of capture folders and the session
@@ -51,7 +57,8 @@ from drivers.errors import ConfigError
 from rig.files.provenance import json_default, write_json
 
 __all__ = ["BatchItem", "BatchOptions", "BatchReport", "classify_item", "content_sha256", "result_digest",
-           "run_item", "run_batch", "chunked_render", "local_cluster", "WORKER_ENV", "DONE_FILE", "RESULT_FILE"]
+           "expected_cost", "submission_order", "list_schedule_makespan", "run_item", "run_batch", "chunked_render",
+           "local_cluster", "WORKER_ENV", "DONE_FILE", "RESULT_FILE"]
 
 ItemKind = Literal["session", "scene", "capture"]
 DONE_FILE = "done.json"
@@ -75,6 +82,9 @@ _DIGEST_SUFFIXES = (".exr", ".tif", ".tiff", ".npy")
 #: folders inside an input folder that earlier estimates wrote (not inputs: left out of the content hash)
 _OUTPUT_DIRS = {"session": ("estimates", "report"), "capture": ("maps",)}
 _HASH_CHUNK = 1 << 20
+#: Dask priority of render-chunk tasks: above the items' (1..N, longest expected first), so the chunks of a started
+#: item run before further items start (an item waiting on its chunks has left its worker slot)
+CHUNK_PRIORITY = 1 << 30
 #: threads hashing the items' inputs on the calling machine (SHA-256 ran at ~450 MB/s per core here)
 HASH_THREADS = 8
 
@@ -260,6 +270,122 @@ def _finished(folder: Path, sha: str, options: dict[str, Any]) -> dict[str, Any]
     return None
 
 
+# ------------------------------------------------------------------------------------------------ order
+#: the scene references' defaults when neither the options nor the scene file set them (rig.files.scene_file)
+_SCENE_DEFAULT_SPP, _SCENE_DEFAULT_ITERATIONS = 128, 4
+
+
+def exr_channel_count(path: Path) -> int | None:
+    """The number of channels an OpenEXR file's header lists (its ``channels`` attribute, a ``chlist``; OpenEXR
+    file layout: magic, version, then attributes name\\0 type\\0 int32 size, data); None when it is not a readable
+    EXR. Reads the header only."""
+    import struct
+
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(1 << 16)
+    except OSError:
+        return None
+    if head[:4] != b"\x76\x2f\x31\x01":
+        return None
+    i = 8
+    while i < len(head) and head[i] != 0:
+        j = head.index(b"\0", i)
+        name = head[i:j]
+        k = head.index(b"\0", j + 1)
+        kind = head[j + 1:k]
+        (size,) = struct.unpack_from("<i", head, k + 1)
+        data = head[k + 5:k + 5 + size]
+        if name == b"channels" and kind == b"chlist":
+            n, pos = 0, 0
+            while pos < len(data) and data[pos] != 0:
+                pos = data.index(b"\0", pos) + 1 + 16     # name, then pixel type, pLinear + 3 reserved, x/y sampling
+                n += 1
+            return n
+        i = k + 5 + size
+    return None
+
+
+def image_channel_count(path: Path) -> int | None:
+    """Colour channels of an image from its header alone: OpenEXR (:func:`exr_channel_count`) or PNG (the IHDR
+    colour type: grey 1, RGB 3, palette 3, grey + alpha 1, RGBA 3; alpha is not a colour channel); None otherwise."""
+    n = exr_channel_count(path)
+    if n is not None:
+        return n
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(32)
+    except OSError:
+        return None
+    if head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR" and len(head) >= 26:
+        return {0: 1, 2: 3, 3: 3, 4: 1, 6: 3}.get(head[25])
+    return None
+
+
+def _scene_work(path: Path, options: dict[str, Any]) -> float | None:
+    """pixels x channels x spp x renders of a scene file's Monte Carlo reference (None: unreadable). Channels from
+    the image's header (EXR, PNG; 3 otherwise); without a reference model pixels x channels."""
+    try:
+        doc = tomllib.loads(path.read_text(encoding="utf-8"))
+        cam = doc.get("camera", {})
+        pixels = int(cam["width_px"]) * int(cam["height_px"])
+    except (OSError, ValueError, KeyError, TypeError, tomllib.TOMLDecodeError):
+        return None
+    img = doc.get("image", {}) if isinstance(doc.get("image"), dict) else {}
+    channels = 3
+    if isinstance(img.get("path"), str):
+        f = Path(img["path"]).expanduser()
+        channels = image_channel_count(f if f.is_absolute() else path.parent / f) or 3
+    pixels *= channels
+    est = doc.get("estimation", {}) if isinstance(doc.get("estimation"), dict) else {}
+    mat = doc.get("material", {}) if isinstance(doc.get("material"), dict) else {}
+    model = options.get("model") or mat.get("model") or ""
+    if "reference" not in str(model):
+        return float(pixels)
+    spp = options.get("reference_spp") or est.get("reference_spp") or _SCENE_DEFAULT_SPP
+    renders = options.get("reference_iterations") or est.get("reference_iterations") or _SCENE_DEFAULT_ITERATIONS
+    return float(pixels) * float(spp) * float(renders)
+
+
+def expected_cost(item: BatchItem, options: dict[str, Any], previous: dict[str, Any] | None = None) -> tuple[int, float]:
+    """The expected cost of an item, for the submission order only (never for its numbers): ``(tier, value)``,
+    compared as a tuple, larger first. Tier 2: ``previous`` (an earlier run's done-marker of the item, whatever its
+    content or options) recorded its CPU seconds. Tier 1: a scene file's pixels x channels x reference spp x
+    reference renders (options, else the scene's ``[estimation]``, else the defaults; the renderer traces every
+    channel's paths). Tier 0: the bytes of the item's inputs (capture
+    and session folders; a scene without a readable camera). Units differ between tiers: an item measured before
+    goes first, then the scenes by their render work, then the rest by size."""
+    if previous is not None:
+        cpu = previous.get("cpu_seconds", previous.get("seconds"))
+        if isinstance(cpu, (int, float)) and cpu > 0:
+            return 2, float(cpu)
+    if item.kind == "scene":
+        work = _scene_work(item.path, options)
+        if work is not None:
+            return 1, work
+        return 0, float(item.path.stat().st_size)
+    size = sum(f.stat().st_size for f in item.path.rglob("*") if f.is_file())
+    return 0, float(size)
+
+
+def submission_order(costs: Sequence[tuple[int, float]]) -> list[int]:
+    """Indices of ``costs`` largest first; ties keep the given order (stable)."""
+    return sorted(range(len(costs)), key=lambda i: (-costs[i][0], -costs[i][1], i))
+
+
+def list_schedule_makespan(seconds: Sequence[float], workers: int) -> float:
+    """The makespan of items of these durations taken in this order by ``workers`` identical workers, each item
+    going to the first worker free (greedy list scheduling; Graham 1966/1969). With ``seconds`` sorted longest
+    first it is the LPT schedule. Scheduling overhead is not modelled."""
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1; got {workers}")
+    free = [0.0] * int(workers)
+    for s in seconds:
+        i = min(range(len(free)), key=free.__getitem__)
+        free[i] += float(s)
+    return max(free)
+
+
 # ------------------------------------------------------------------------------------------------ render chunks
 def _stack_chunks(parts: Sequence[Any]) -> Any:
     """One :class:`simulators.mc.MCImage` from the images of consecutive row chunks (in order)."""
@@ -293,7 +419,9 @@ def chunked_render(shape: Any, media: Any, camera: Any, lights: Any, *, chunk_ro
     except (ImportError, ValueError):
         return _stack_chunks([render(shape, media, camera, lights, rows=b, **kw) for b in bounds])
     with worker_client() as client:
-        futures = [client.submit(render, shape, media, camera, lights, rows=b, pure=False, **kw) for b in bounds]
+        # above every item's priority (run_batch gives items 1..N): a started item's chunks run before new items start
+        futures = [client.submit(render, shape, media, camera, lights, rows=b, pure=False, priority=CHUNK_PRIORITY,
+                                 **kw) for b in bounds]
         return _stack_chunks(client.gather(futures))
 
 
@@ -461,8 +589,15 @@ def _run_distributed(todo: list[BatchItem], opts: BatchOptions, out: Path, shas:
                 say(f"starting a local Dask cluster: {workers} worker processes, 1 thread each")
                 own_cluster = local_cluster(workers)
                 own_client = client = Client(own_cluster)
-        futures = {client.submit(run_item, it, opts.for_kind(it.kind), str(out), shas[it.key], opts.render_chunk_rows,
-                                 key=f"rig-batch-{it.key}-{shas[it.key][:12]}", pure=False): it for it in todo}
+        # longest expected first (module docstring): submitted in that order and with Dask priorities by rank
+        costs = [expected_cost(it, opts.for_kind(it.kind), _read_marker(out / it.key)) for it in todo]
+        order = submission_order(costs)
+        futures = {}
+        for rank, i in enumerate(order):
+            it = todo[i]
+            futures[client.submit(run_item, it, opts.for_kind(it.kind), str(out), shas[it.key],
+                                   opts.render_chunk_rows, key=f"rig-batch-{it.key}-{shas[it.key][:12]}", pure=False,
+                                   priority=len(order) - rank)] = it
         for fut in as_completed(list(futures)):
             it = futures[fut]
             try:

@@ -36,6 +36,14 @@ __all__ = ["estimate_scene", "format_table", "run_cli"]
 #: mc-table+reference: the start's ridge scan (estimation.ridge_scan) renders at reference_spp / this, at least
 #: RIDGE_SCAN_MIN_SPP (128 -> 32 spp: the scan compares points a factor 3 apart, which differ far more than that noise)
 RIDGE_SCAN_SPP_DIVISOR, RIDGE_SCAN_MIN_SPP = 4, 8
+#: reference_mode "adaptive" (issue 19): the reference's sample-count levels reference_spp / these, at least
+#: REFERENCE_MIN_SPP; the first render at the cheapest, then the cheapest whose noise is at most half the fit's
+#: (estimation.model_correction.RENDER_NOISE_FRACTION); "legacy": every render at reference_spp
+REFERENCE_SPP_LEVEL_DIVISORS, REFERENCE_MIN_SPP = (8, 4, 2, 1), 8
+REFERENCE_MODES = ("adaptive", "legacy")
+#: the default stays "legacy" until a full zoo run (benchmarks/scene_zoo.py) has checked "adaptive" on every scene:
+#: measured so far on z10 alone (benchmarks/reference_speed.py; docs/model-error.md)
+DEFAULT_REFERENCE_MODE = "legacy"
 
 
 def _irradiance(scene: Scene, patches: Any) -> Array:
@@ -214,7 +222,7 @@ def _scene_summary(scene: Scene) -> dict[str, Any]:
 def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None = None,
                    reference_spp: int | None = None, reference_iterations: int | None = None,
                    reference_seed: int | None = None, shadows: bool | str | None = None,
-                   patches: int | str | None = None) -> dict[str, Any]:
+                   patches: int | str | None = None, reference_mode: str | None = None) -> dict[str, Any]:
     """Run the single-image method on a loaded scene; return a JSON-able result (docs/scene-file.md, "Output").
 
     ``method`` overrides the scene's ``[estimation].method``, ``model`` its ``[material].model``, and the
@@ -227,6 +235,9 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
     ``patches`` ("auto" or an integer) overrides ``[estimation].patches``: the patches come from a copy of the mesh
     decimated to that many faces, while visibility, the pixel map and cast shadows use the full mesh
     (:mod:`estimation.single_image.decimation`). ``seconds_by_stage`` in the result times the stages.
+    ``reference_mode`` (None: :data:`DEFAULT_REFERENCE_MODE`): "adaptive" (issue 19: the reference's sample count
+    matched to the fit's noise, :data:`REFERENCE_SPP_LEVEL_DIVISORS`) or "legacy" (every render at
+    ``reference_spp``).
     """
     from estimation.single_image import SingleImageResult, estimate_single_image
     from estimation.single_image.decimation import PATCH_MIN_PIXELS, gather_patch_pixels
@@ -244,6 +255,9 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
     spp = scene.estimation.reference_spp if reference_spp is None else int(reference_spp)
     iterations = scene.estimation.reference_iterations if reference_iterations is None else int(reference_iterations)
     ref_seed = scene.estimation.reference_seed if reference_seed is None else int(reference_seed)
+    mode = DEFAULT_REFERENCE_MODE if reference_mode is None else str(reference_mode)
+    if mode not in REFERENCE_MODES:
+        raise ValueError(f"reference_mode must be one of {REFERENCE_MODES}; got {reference_mode!r}")
     if spp < 2 or iterations < 1 or ref_seed < 0:
         raise ValueError(f"reference_spp must be >= 2, reference_iterations >= 1, reference_seed >= 0; got {spp}, "
                          f"{iterations}, {ref_seed}")
@@ -327,11 +341,13 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
         from rig.estimate.reference.scene_reference import scene_reference
 
         valid_px = np.all(valid, axis=2)
-        ref, ref_info = scene_reference(scene, patches, valid_px, spp=spp)  # SceneFileError before any fit
+        levels = tuple(sorted({min(spp, max(REFERENCE_MIN_SPP, spp // k)) for k in REFERENCE_SPP_LEVEL_DIVISORS}))
+        ref, ref_info = scene_reference(scene, patches, valid_px, spp=spp,   # SceneFileError before any fit
+                                        spp_levels=levels if mode == "adaptive" and len(levels) > 1 else ())
         # the start's scan along the ridge of constant albedo (estimation.ridge_scan): cheap renders, score-function
         # derivatives only (the sigma_a refit; no paired difference in sigma_s')
         scan_ref = dataclasses.replace(ref, spp=max(RIDGE_SCAN_MIN_SPP, spp // RIDGE_SCAN_SPP_DIVISOR),
-                                       fd_log_sigma_s=0.0, renders=[])
+                                       fd_log_sigma_s=0.0, renders=[], spp_levels=(), level=-1)
         try:
             res = estimate_with_reference(obs, patches, e_t, scene.material.eta, ref, base_model="mc-table",
                                           max_iterations=iterations, seed=ref_seed, scan_reference=scan_ref,
@@ -345,6 +361,8 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
                          "render_seconds_total": float(sum(r["seconds"] for r in ref.renders)),
                          "ridge_scan": res.extra.get("ridge_scan"), "scan_renders": list(scan_ref.renders),
                          "scan_render_seconds_total": float(sum(r["seconds"] for r in scan_ref.renders)),
+                         "reference_mode": mode, "spp_levels": list(ref.spp_levels) or [spp],
+                         "sample_count_levels": res.extra.get("sample_count_levels"),
                          "seconds_total": res.extra.get("seconds_total")}
     else:
         res = estimate_single_image(obs, patches, e_t, scene.material.eta, model=model_name, **fit_kw)
@@ -515,7 +533,8 @@ def run_cli(args: Any) -> int:
                             reference_spp=getattr(args, "reference_spp", None),
                             reference_iterations=getattr(args, "reference_iterations", None),
                             reference_seed=getattr(args, "reference_seed", None),
-                            shadows=getattr(args, "shadows", None), patches=getattr(args, "patches", None))
+                            shadows=getattr(args, "shadows", None), patches=getattr(args, "patches", None),
+                            reference_mode=getattr(args, "reference_mode", None))
     out = getattr(args, "out", None)
     out_path = Path(out) if out is not None else Path(args.scene).with_suffix(".estimate.json")
     text = json.dumps(result, indent=2, allow_nan=False) + "\n"

@@ -268,6 +268,12 @@ def test_marble_sphere_noise_free_is_exact(camera, marble10) -> None:
     np.testing.assert_allclose(s.value("sigma_a_per_mm"), tr["sigma_a_per_mm"], rtol=4e-2)
     # the apparent albedo of the sphere is C(2 rho), below R_d
     np.testing.assert_allclose(s.value("albedo"), sphere_albedo(10.0, *MARBLE, ETA), rtol=2e-3)
+    # the observables-only summary (issue 19: the Monte Carlo reference's) has the same observables, nothing else
+    obs_only = estimate_sphere(maps, radius_mm=10.0, true_normals=normals, invert_summary=False).summary
+    for k in ("albedo", "shortening"):
+        np.testing.assert_array_equal(obs_only.value(k), s.value(k))
+        np.testing.assert_array_equal(obs_only.params[k].interval, s.params[k].interval)
+    assert np.isnan(obs_only.value("D_mm")).all() and obs_only.status == s.status
 
 
 def test_marble_sphere_with_noise_recovers_parameters(camera, led_rig) -> None:

@@ -232,3 +232,47 @@ def test_a_lens_like_sphere_starts_from_the_scan_and_recovers_the_truth() -> Non
     assert len(ref.calls) == 9 + res.iterations                   # the scan's renders are counted apart
     lo, hi = res.intervals["D_mm"].T
     assert np.all((lo <= d_true) & (d_true <= hi))
+
+
+class Levelled(Distorted):
+    """:class:`Distorted` with sample-count levels (rig.estimate.reference.mc_reference.GradientsMonteCarloReference's
+    ``spp_levels`` protocol); the cheap level's observables carry a deterministic bias of ``low_bias`` in the albedo
+    (standing in for its noise)."""
+
+    def __init__(self, levels=(8, 64), low_bias: float = 0.02) -> None:
+        super().__init__(rel_stderr=0.002)
+        self.levels, self.level, self.low_bias = levels, len(levels) - 1, low_bias
+        self.spp_calls: list[int] = []
+
+    n_levels = property(lambda self: len(self.levels))
+    current_spp = property(lambda self: self.levels[self.level])
+
+    def set_level(self, level):
+        self.level = level
+
+    def observables(self, ssp, sa) -> SphereObservables:
+        o = super().observables(ssp, sa)
+        if self.level < len(self.levels) - 1:
+            return SphereObservables(o.albedo * (1 + self.low_bias), o.shortening, o.albedo_interval,
+                                     o.shortening_interval)
+        return o
+
+    def __call__(self, ssp, sa, eta, seed):
+        self.spp_calls.append(self.current_spp)
+        return super().__call__(ssp, sa, eta, seed)
+
+
+def test_sample_count_levels_start_cheap_and_end_on_full_renders() -> None:
+    """Issue 19's adaptive sample counts in the sphere loop: the cheap level first; its (biased) renders do not end
+    the loop unless its interval is already narrow enough, the full level does, and only full renders count towards
+    max_iterations; the result is the full level's fixed point (the truth), not the cheap level's; each step records
+    its sample count."""
+    ssp, sa = SKIN1
+    ref = Levelled()
+    obs = ref.observables(ssp, sa)
+    res = estimate_sphere_with_reference(obs, ref, RADIUS_MM, ETA, seed=3, rel_tol=1e-3, max_iterations=4)
+    assert ref.spp_calls[0] == 8 and ref.spp_calls[-1] == 64 and ref.spp_calls == sorted(ref.spp_calls)
+    assert sum(s == 64 for s in ref.spp_calls) <= 4 and sum(s == 8 for s in ref.spp_calls) <= 2
+    assert [st.spp for st in res.steps] == ref.spp_calls
+    assert res.converged, res.message
+    np.testing.assert_allclose(res.D_mm, 1.0 / (3.0 * (ssp + sa)), rtol=5e-3)

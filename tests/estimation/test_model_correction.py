@@ -342,3 +342,46 @@ def test_widen_keeps_one_sided_intervals_at_zero():
     np.testing.assert_allclose(_widen(ci, est, np.ones(2)), ci)
 
 
+
+
+class Levelled(WithDerivatives):
+    """:class:`WithDerivatives` with sample-count levels (MonteCarloReference's ``spp_levels`` protocol): its relative
+    noise is ``rel_noise_at_top`` x sqrt(top spp / current spp), as a Monte Carlo render's."""
+
+    def __init__(self, value_fn, levels=(16, 32, 64, 128), rel_noise_at_top: float = 0.002):
+        super().__init__(value_fn, rel_noise=rel_noise_at_top)
+        self.levels, self.level, self.top_noise = levels, len(levels) - 1, rel_noise_at_top
+        self.spp_calls: list[int] = []
+
+    n_levels = property(lambda self: len(self.levels))
+    current_spp = property(lambda self: self.levels[self.level])
+    spp_levels = property(lambda self: self.levels)
+
+    def set_level(self, level):
+        self.level = level
+
+    def __call__(self, ssp, sa, eta, seed):
+        self.spp_calls.append(self.current_spp)
+        self.rel_noise = self.top_noise * np.sqrt(self.levels[-1] / self.current_spp)
+        return super().__call__(ssp, sa, eta, seed)
+
+
+@pytest.mark.parametrize("top_noise, want_spp", [(0.002, 16), (0.2, 128)])
+def test_sample_count_matched_to_the_fits_noise(observed, top_noise, want_spp):
+    """Issue 19: the first render at the cheapest level decides the sample count of the others: the cheapest level
+    whose noise, carried to the parameters (estimation.model_correction._noise_matched_level), is at most half the
+    plain fit's standard error. A quiet reference stays at 16 spp (every render), a noisy one goes to the top; the
+    pilot render is not counted against max_iterations; the estimate and its interval hold the truth either way."""
+    obs, sig = observed
+    ref = Levelled(_distorted_value, rel_noise_at_top=top_noise)
+    r = estimate_with_reference(obs, PAT, LIGHT, ETA, ref, noise_sigma=sig, max_iterations=3, model_error=0.005)
+    info = r.extra["sample_count_levels"]
+    assert info["first_spp"] == 16 and info["chosen_spp"] == want_spp, info
+    assert info["levels"] == [16, 32, 64, 128] and info["render_to_fit_sd_ratio"] > 0
+    assert ref.spp_calls[0] == 16 and set(ref.spp_calls[1:]) == {want_spp}, ref.spp_calls
+    assert [s["spp"] for s in r.extra["reference"][1:]] == ref.spp_calls
+    assert len(ref.spp_calls) <= 3 + (want_spp != 16)
+    lo, hi = r.sigma_s_prime_ci_per_mm[0]
+    assert lo <= TRUTH[0] <= hi, (lo, hi)
+    if r.extra["status"]["sigma_s_prime_per_mm"] == ["ok"]:
+        assert abs(r.sigma_s_prime_per_mm[0] / TRUTH[0] - 1) < 0.05

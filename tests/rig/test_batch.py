@@ -193,3 +193,43 @@ def test_kinds(tmp_path: Path) -> None:
     assert classify_item(tmp_path / "s").kind == "session"
     with pytest.raises(BatchItemError, match="capture folder, not its capture.toml"):
         classify_item(data / "relief_skin1" / "capture.toml")
+
+
+def test_longest_expected_first_order_and_its_makespan(tmp_path: Path) -> None:
+    """Items go longest-expected-first (rig.estimate.batch.expected_cost): an earlier run's recorded CPU seconds
+    beat any static estimate, then a scene's pixels x spp x renders, then input bytes; ties keep the given order.
+    The greedy list schedule of 2 workers is what the docs' makespans are computed with (Graham's LPT example)."""
+    from rig.estimate.batch import BatchItem, expected_cost, list_schedule_makespan, submission_order
+
+    def scene(name: str, w: int, h: int, extra: str = "") -> BatchItem:
+        f = tmp_path / f"{name}.toml"
+        f.write_text(f"version = 1\n[camera]\nwidth_px = {w}\nheight_px = {h}\n{extra}")
+        return BatchItem(f, "scene", name)
+
+    opts = {"model": "mc-table+reference", "method": None, "reference_spp": None, "reference_iterations": None,
+            "reference_seed": None}
+    import struct
+    for name, colour_type in (("grey.png", 0), ("rgb.png", 2)):    # a PNG header: signature, IHDR, colour type
+        (tmp_path / name).write_bytes(b"\x89PNG\r\n\x1a\n" + struct.pack(">I", 13) + b"IHDR"
+                                      + struct.pack(">IIBB", 48, 48, 8, colour_type) + b"\0\0\0")
+    grey = '[image]\npath = "grey.png"\n'
+    small, big = scene("small", 48, 48, grey), scene("big", 64, 64, grey)
+    own = scene("own", 48, 48, grey + "[estimation]\nreference_spp = 512\nreference_iterations = 2\n")
+    rgb = scene("rgb", 48, 48, '[image]\npath = "rgb.png"\n')
+    assert expected_cost(big, opts) == (1, 64 * 64 * 128 * 4)          # the scene-file defaults: 128 spp, 4 renders
+    assert expected_cost(own, opts) == (1, 48 * 48 * 512 * 2)          # the scene's own [estimation]
+    assert expected_cost(own, {**opts, "reference_spp": 8, "reference_iterations": 1}) == (1, 48 * 48 * 8)
+    assert expected_cost(rgb, opts) == (1, 3 * 48 * 48 * 128 * 4)      # three channels: three times the paths
+    assert expected_cost(scene("noimage", 48, 48), opts) == expected_cost(rgb, opts)   # unknown: 3 channels
+    assert expected_cost(small, {**opts, "model": "mc-table"}) == (1, 48 * 48)   # no reference: pixels
+    assert expected_cost(small, opts, {"cpu_seconds": 3.5}) == (2, 3.5)        # measured before: first
+    folder = tmp_path / "cap"
+    folder.mkdir()
+    (folder / "capture.toml").write_bytes(b"x" * 100)
+    assert expected_cost(BatchItem(folder, "capture", "cap"), opts) == (0, 100.0)
+    costs = [expected_cost(i, opts) for i in (small, big, own)] + [(1, 48 * 48 * 128 * 4)]
+    assert submission_order(costs) == [2, 1, 0, 3]                     # own > big > small == the 4th (stable)
+    assert list_schedule_makespan([3, 3, 2, 2, 2], 2) == 7 and list_schedule_makespan([2, 2, 2, 3, 3], 2) == 7
+    assert list_schedule_makespan([1, 1, 1, 1, 4], 2) == 6 and list_schedule_makespan([4, 1, 1, 1, 1], 2) == 4
+    with pytest.raises(ValueError, match="workers"):
+        list_schedule_makespan([1.0], 0)

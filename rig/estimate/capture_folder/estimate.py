@@ -97,6 +97,9 @@ def _check_reference(cap: Capture, reference: Mapping[str, Any]) -> None:
         v = reference.get(k)
         if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < lo):
             raise ConfigError(f"--reference-{k}", k, f"an integer >= {lo}", v)
+    mode = reference.get("mode")
+    if mode is not None and mode not in ("adaptive", "legacy"):
+        raise ConfigError("--reference-mode", "mode", "\"adaptive\" or \"legacy\"", mode)
 
 
 def _reference_summary(cap: Capture, reference: Mapping[str, Any], leds: LedRig | None, scale: Any, eta: float,
@@ -124,7 +127,8 @@ def _reference_summary(cap: Capture, reference: Mapping[str, Any], leds: LedRig 
             spp=int(reference.get("spp") or REFERENCE_SPP),
             iterations=int(reference.get("iterations") or REFERENCE_ITERATIONS),
             seed=int(REFERENCE_SEED if reference.get("seed") is None else reference["seed"]), tile_rows=tile_rows,
-            render_mode=str(reference.get("render_mode", "mc")))
+            render_mode=str(reference.get("render_mode", "mc")),
+            reference_mode=str(reference.get("mode") or "adaptive"))
     except ValueError as exc:
         raise CaptureError(f"{cap.file}: the reference-corrected sphere estimate failed: {exc}") from exc
     return out

@@ -64,14 +64,14 @@ def format_summary(s: Mapping[str, Any]) -> str:
 
 def run_cli(args: Any) -> int:
     """``rig estimate gradients FOLDER [--out DIR] [--format exr|tiff] [--tile-rows N] [--model M] [--json]
-    [--reference [--reference-spp N] [--reference-iterations K] [--reference-seed S]]``."""
+    [--reference [--reference-spp N] [--reference-iterations K] [--reference-seed S] [--reference-mode M]]``."""
     folder = Path(args.folder)
     out = Path(args.out) if getattr(args, "out", None) else folder / "maps"
     tile_rows = getattr(args, "tile_rows", None)
     if tile_rows is not None and tile_rows < 1:
         raise ConfigError("--tile-rows", "tile_rows", "an integer >= 1", tile_rows)
     reference: dict[str, Any] | None = None
-    ref_opts = {k: getattr(args, f"reference_{k}", None) for k in ("spp", "iterations", "seed")}
+    ref_opts = {k: getattr(args, f"reference_{k}", None) for k in ("spp", "iterations", "seed", "mode")}
     if getattr(args, "reference", False):
         reference = ref_opts
     else:

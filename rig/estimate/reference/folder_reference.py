@@ -46,6 +46,11 @@ __all__ = ["REFERENCE_SPP", "REFERENCE_ITERATIONS", "REFERENCE_SEED", "REFERENCE
 REFERENCE_SPP = 64
 REFERENCE_ITERATIONS = 8
 REFERENCE_SEED = 1
+#: reference_mode "adaptive" (issue 19, the default): sample-count levels spp / these (at least REFERENCE_MIN_SPP),
+#: the loop stopping at the cheapest one that meets its stop rule with "ok"-narrow intervals
+#: (estimation.gradient_correction); "legacy": every render at spp (the loop as at the start of issue 19)
+REFERENCE_SPP_LEVEL_DIVISORS, REFERENCE_MIN_SPP = (8, 1), 8
+REFERENCE_MODES = ("adaptive", "legacy")
 REFERENCE_REL_TOL = 0.02   # the stop rule used in tests/simulators/test_mc_frames_gradients.py
 FrameKey = tuple[str, str]
 
@@ -100,11 +105,14 @@ class FolderSphereReference(GradientsMonteCarloReference):
     true_normals: NDArray[np.float64] | None = None
     region: NDArray[np.bool_] | None = None
     tile_rows: int = 256
+    #: the summary's observables only (albedo, shortening: all the correction reads), not its parameter inversions
+    observables_only: bool = False
 
     def estimate_maps(self, maps: GradientMaps) -> SphereEstimate:
         """The sphere summary of maps (observed or rendered): exact sphere method, the folder's region."""
         return estimate_sphere(maps, radius_mm=float(self.radius_mm), true_normals=self.true_normals,
-                               region=self.region, erode_px=int(self.erode_px), tile_rows=int(self.tile_rows))
+                               region=self.region, erode_px=int(self.erode_px), tile_rows=int(self.tile_rows),
+                               invert_summary=not self.observables_only)
 
     def estimate(self, capture: Any) -> SphereEstimate:
         return self.estimate_maps(self.maps_fn(capture))
@@ -123,15 +131,21 @@ def reference_corrected_sphere(*, camera: PinholeCamera | OrthographicCamera, le
                                folder_maps: Callable[[Mapping[FrameKey, NDArray[np.float32]]], GradientMaps],
                                observed_maps: GradientMaps, spp: int = REFERENCE_SPP,
                                iterations: int = REFERENCE_ITERATIONS, seed: int = REFERENCE_SEED,
-                               tile_rows: int = 256, render_mode: str = "mc") -> tuple[dict[str, Any], Any]:
+                               tile_rows: int = 256, render_mode: str = "mc", reference_mode: str = "adaptive"
+                               ) -> tuple[dict[str, Any], Any]:
     """The reference-corrected sphere summary of a capture folder (JSON-ready dict) and the reference object.
 
     ``folder_maps(images) -> GradientMaps``: the folder's own ``compute_maps`` call (same albedo scale, LUT, LED
     model, thresholds, exposures, object mask) on frames keyed like the folder's; ``frame_keys``: the folder's
     (pattern, polarization) keys; ``observed_maps``: ``folder_maps`` of the folder's frames. Raises ``ValueError``
-    when the correction cannot run (see :func:`estimate_sphere_with_reference`).
+    when the correction cannot run (see :func:`estimate_sphere_with_reference`). ``reference_mode``: "adaptive"
+    (issue 19: sample-count levels spp / :data:`REFERENCE_SPP_LEVEL_DIVISORS`, the renders reduced to the two
+    observables the correction reads, without the summary's parameter inversions) or "legacy" (every render at
+    ``spp`` with full summaries, as at the start of issue 19).
     """
-    t0 = time.perf_counter()
+    if reference_mode not in REFERENCE_MODES:
+        raise ValueError(f"reference_mode must be one of {REFERENCE_MODES}; got {reference_mode!r}")
+    t0, c0 = time.perf_counter(), time.process_time()
     drives = {p: leds.pattern_values(p) for p in sorted({p for p, _ in frame_keys if p != "ambient"})}
     pols = tuple(pol for pol in ("cross", "parallel") if any(k[1] == pol for k in frame_keys))
     V = implied_value_per_radiance_per_s(albedo_scale, leds, eta, reference_normal)
@@ -159,7 +173,11 @@ def reference_corrected_sphere(*, camera: PinholeCamera | OrthographicCamera, le
                                 tuple(float(c) for c in np.asarray(center_mm, dtype=np.float64)), spp=int(spp),
                                 polarizations=pols, exposure_s=k_render, sensor=None,
                                 mc=MCSettings(spp=int(spp), seed=int(seed), leds="distant"), render_mode=render_mode,
-                                true_normals=true_normals, region=region, tile_rows=int(tile_rows))
+                                true_normals=true_normals, region=region, tile_rows=int(tile_rows),
+                                spp_levels=tuple(sorted({min(int(spp), max(REFERENCE_MIN_SPP, int(spp) // k))
+                                                         for k in REFERENCE_SPP_LEVEL_DIVISORS}))
+                                if reference_mode == "adaptive" and render_mode == "mc" else (),
+                                observables_only=reference_mode == "adaptive")
     observed = SphereObservables.from_summary(ref.estimate_maps(observed_maps).summary)
     res = estimate_sphere_with_reference(observed, ref, float(radius_mm), float(eta), seed=int(seed),
                                          max_iterations=int(iterations), rel_tol=REFERENCE_REL_TOL)
@@ -189,6 +207,8 @@ def reference_corrected_sphere(*, camera: PinholeCamera | OrthographicCamera, le
                                   f"\"{render_mode}\", simulators.mc_capture)",
                       "spp": int(spp), "max_iterations": int(iterations), "seed": int(seed),
                       "rel_tol": REFERENCE_REL_TOL, "led_mode": mc.leds, "env_rows": mc.env_rows,
+                      "reference_mode": reference_mode, "spp_levels": list(ref.spp_levels) or [int(spp)],
+                      "render_spp": [r.get("spp") for r in ref.renders],
                       "patterns": sorted(drives), "polarizations": list(pols),
                       "value_per_radiance_per_s": V.tolist(), "render_exposure_s": k_render,
                       "region_px": int(np.count_nonzero(region)),
@@ -196,5 +216,6 @@ def reference_corrected_sphere(*, camera: PinholeCamera | OrthographicCamera, le
                       "limits": "LEDs rendered as a distant map centred on the sphere (no near field); "
                                 "the sphere is taken as exactly known (center_mm, radius_mm, eta)"},
         "seconds": time.perf_counter() - t0,
+        "cpu_seconds": time.process_time() - c0,   # this process's CPU (load-independent; issue 19's benchmark)
     }
     return summary, ref

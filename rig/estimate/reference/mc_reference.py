@@ -75,14 +75,40 @@ class MonteCarloReference:
     #: simulators.mc.render's ``fd_log_sigma_s``)
     fd_log_sigma_s: float = 0.1
     renders: list[dict[str, Any]] = field(default_factory=list)
+    #: adaptive sample counts (issue 19): ascending, ending at ``spp``; () = ``spp`` alone. The loop
+    #: (:func:`estimation.model_correction.estimate_with_reference`) renders first at the cheapest level, then at the
+    #: one whose noise matches the fit's
+    spp_levels: tuple[int, ...] = ()
+    level: int = -1   # index into spp_levels (-1: the last, the full count)
 
     def __post_init__(self) -> None:
         if self.spp < 2:
             raise ValueError("spp must be >= 2 (the correction needs a standard error)")
+        levels = tuple(int(x) for x in self.spp_levels)
+        if levels and (min(levels) < 2 or list(levels) != sorted(set(levels)) or levels[-1] != int(self.spp)):
+            raise ValueError(f"spp_levels must be strictly ascending sample counts >= 2 ending at spp = {self.spp}; "
+                             f"got {list(self.spp_levels)}")
+        self.spp_levels = levels
         if self.valid_px is not None:
             want = (self.camera.height_px, self.camera.width_px)
             if np.shape(self.valid_px) != want:
                 raise ValueError(f"valid_px has shape {np.shape(self.valid_px)}; expected the camera's {want}")
+
+    @property
+    def n_levels(self) -> int:
+        """Number of sample-count levels (1 without ``spp_levels``)."""
+        return max(1, len(self.spp_levels))
+
+    def set_level(self, level: int) -> None:
+        """Render at ``spp_levels[level]`` from now on (0: the cheapest; ``n_levels - 1``: ``spp``)."""
+        if not 0 <= int(level) < self.n_levels:
+            raise ValueError(f"level must lie in [0, {self.n_levels - 1}]; got {level}")
+        self.level = int(level)
+
+    @property
+    def current_spp(self) -> int:
+        """The sample count of the next render."""
+        return self.spp_levels[self.level] if self.spp_levels else int(self.spp)
 
     def __call__(self, sigma_s_prime_per_mm: Any, sigma_a_per_mm: Any, eta: float, seed: int
                  ) -> tuple[NDArray[np.float64], ...]:
@@ -97,14 +123,15 @@ class MonteCarloReference:
         sa = np.atleast_1d(np.asarray(sigma_a_per_mm, dtype=np.float64))
         media = [Medium.from_reduced(float(s), float(a), g=self.g, eta=float(eta)) for s, a in zip(ssp, sa)]
         fn = _RENDER.get() or render
-        img = fn(self.shape, media, self.camera, self.lights, spp=int(self.spp), seed=int(seed),
+        spp = int(self.current_spp)
+        img = fn(self.shape, media, self.camera, self.lights, spp=spp, seed=int(seed),
                  derivatives=self.derivatives, fd_log_sigma_s=self.fd_log_sigma_s)
         valid = img.mask if self.valid_px is None else img.mask & np.asarray(self.valid_px, dtype=bool)
         valid = np.broadcast_to(valid[..., None], img.radiance.shape)
         obs, sig = sample_at_points(img.radiance, img.stderr ** 2, valid, self.camera, self.patches.centers_mm,
                                     self.window_px)
-        paths = int(img.mask.sum()) * int(self.spp) * len(media)
-        self.renders.append({"seed": int(seed), "seconds": img.seconds, "paths": paths,
+        paths = int(img.mask.sum()) * spp * len(media)
+        self.renders.append({"seed": int(seed), "seconds": img.seconds, "paths": paths, "spp": spp,
                              "paths_per_s": paths / max(img.seconds, 1e-9), "derivatives": bool(self.derivatives),
                              "sigma_s_prime_per_mm": ssp.tolist(), "sigma_a_per_mm": sa.tolist()})
         if not self.derivatives or img.d_log_sigma is None:
@@ -150,10 +177,19 @@ class GradientsMonteCarloReference:
     mc: Any = None
     renders: list[dict[str, Any]] = field(default_factory=list)
     render_mode: str = "mc"
+    #: adaptive sample counts (issue 19): ascending, ending at ``spp``; () = ``spp`` alone. The loop
+    #: (:func:`estimation.gradient_correction.estimate_sphere_with_reference`) starts at the cheapest level
+    spp_levels: tuple[int, ...] = ()
+    level: int = -1   # index into spp_levels (-1: the last, the full count)
 
     def __post_init__(self) -> None:
         if self.spp < 2:
             raise ValueError("spp must be >= 2 (the Monte Carlo standard error needs two paths per pixel)")
+        levels = tuple(int(x) for x in self.spp_levels)
+        if levels and (min(levels) < 2 or list(levels) != sorted(set(levels)) or levels[-1] != int(self.spp)):
+            raise ValueError(f"spp_levels must be strictly ascending sample counts >= 2 ending at spp = {self.spp}; "
+                             f"got {list(self.spp_levels)}")
+        self.spp_levels = levels
         if self.render_mode not in ("mc", "fast"):
             raise ValueError(f"render_mode must be 'mc' or 'fast'; got {self.render_mode!r}")
         if not self.radius_mm > 0:
@@ -165,6 +201,22 @@ class GradientsMonteCarloReference:
         if self.erode_px < 0:
             raise ValueError("erode_px must be >= 0")
 
+    @property
+    def n_levels(self) -> int:
+        """Number of sample-count levels (1 without ``spp_levels``)."""
+        return max(1, len(self.spp_levels))
+
+    def set_level(self, level: int) -> None:
+        """Render at ``spp_levels[level]`` from now on (0: the cheapest; ``n_levels - 1``: ``spp``)."""
+        if not 0 <= int(level) < self.n_levels:
+            raise ValueError(f"level must lie in [0, {self.n_levels - 1}]; got {level}")
+        self.level = int(level)
+
+    @property
+    def current_spp(self) -> int:
+        """The sample count of the next render."""
+        return self.spp_levels[self.level] if self.spp_levels else int(self.spp)
+
     def estimate(self, capture: Any) -> SphereEstimate:
         """The sphere estimate of a capture (observed or rendered): maps_fn, then estimate_sphere."""
         maps = self.maps_fn(capture)
@@ -175,8 +227,10 @@ class GradientsMonteCarloReference:
         """The region observables of a capture, computed exactly as for the reference renders."""
         return SphereObservables.from_summary(self.estimate(capture).summary)
 
-    def render(self, sigma_s_prime_per_mm: Any, sigma_a_per_mm: Any, eta: float, seed: int) -> Any:
-        """The Monte Carlo gradient capture (:class:`simulators.scene.GradientCapture`) at these parameters."""
+    def render(self, sigma_s_prime_per_mm: Any, sigma_a_per_mm: Any, eta: float, seed: int,
+               spp: int | None = None) -> Any:
+        """The Monte Carlo gradient capture (:class:`simulators.scene.GradientCapture`) at these parameters
+        (``spp`` paths per pixel; None: :attr:`current_spp`)."""
         from dataclasses import replace
 
         from simulators.mc_capture import MCSettings
@@ -192,8 +246,8 @@ class GradientsMonteCarloReference:
             raise ValueError(f"sigma_s_prime_per_mm must be finite and > 0; got {ssp.tolist()}")
         if not (np.all(np.isfinite(sa)) and np.all(sa >= 0)):
             raise ValueError(f"sigma_a_per_mm must be finite and >= 0; got {sa.tolist()}")
-        settings = MCSettings(spp=int(self.spp), seed=int(seed)) if self.mc is None else replace(
-            self.mc, spp=int(self.spp), seed=int(seed))
+        n = int(self.current_spp if spp is None else spp)
+        settings = MCSettings(spp=n, seed=int(seed)) if self.mc is None else replace(self.mc, spp=n, seed=int(seed))
         obj = SphereObject(tuple(float(c) for c in self.center_mm), float(self.radius_mm),
                            (float(ssp[0]), float(ssp[1]), float(ssp[2])), (float(sa[0]), float(sa[1]), float(sa[2])),
                            float(eta), tessellation=int(self.tessellation))
@@ -205,10 +259,11 @@ class GradientsMonteCarloReference:
         import time
 
         t0 = time.perf_counter()
-        cap = self.render(sigma_s_prime_per_mm, sigma_a_per_mm, eta, seed)
+        spp = self.current_spp
+        cap = self.render(sigma_s_prime_per_mm, sigma_a_per_mm, eta, seed, spp=spp)
         t1 = time.perf_counter()
         obs = self.observables(cap)
         self.renders.append({"seed": int(seed), "render_seconds": t1 - t0, "maps_seconds": time.perf_counter() - t1,
                              "sigma_s_prime_per_mm": np.atleast_1d(sigma_s_prime_per_mm).tolist(),
-                             "sigma_a_per_mm": np.atleast_1d(sigma_a_per_mm).tolist(), "spp": int(self.spp)})
+                             "sigma_a_per_mm": np.atleast_1d(sigma_a_per_mm).tolist(), "spp": int(spp)})
         return obs

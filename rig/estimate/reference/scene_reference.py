@@ -130,9 +130,11 @@ def check_reference_scene(scene: Any) -> Any:
     return shape
 
 
-def scene_reference(scene: Any, patches: Patches, valid_px: NDArray[np.bool_], *, spp: int) -> tuple[Any, dict[str, Any]]:
+def scene_reference(scene: Any, patches: Patches, valid_px: NDArray[np.bool_], *, spp: int,
+                    spp_levels: tuple[int, ...] = ()) -> tuple[Any, dict[str, Any]]:
     """A :class:`rig.estimate.reference.mc_reference.MonteCarloReference` of the scene (module docstring) and a JSON-able
-    description of what it renders (frame, lights, approximations)."""
+    description of what it renders (frame, lights, approximations); ``spp_levels``: its adaptive sample counts
+    (ascending, ending at ``spp``; () = ``spp`` alone)."""
     import trimesh
     from simulators.mc import Mesh
 
@@ -159,7 +161,7 @@ def scene_reference(scene: Any, patches: Patches, valid_px: NDArray[np.bool_], *
     pat = replace(patches, centers_mm=patches.centers_mm @ rot.T, normals=patches.normals @ rot.T, occluder=None,
                   face_index=None)
     ref = MonteCarloReference(shape, cam, lights, pat, spp=int(spp), window_px=scene.estimation.window_px,
-                              valid_px=np.asarray(valid_px, bool))
+                              valid_px=np.asarray(valid_px, bool), spp_levels=tuple(spp_levels))
     notes = []
     if scene.directional_lights:
         notes.append(f"directional lights rendered as point lights {DIRECTIONAL_DISTANCE_FACTOR:.0e} object sizes "
