@@ -296,8 +296,13 @@ def _media_list(media: Medium | Sequence[Medium]) -> list[Medium]:
     return out
 
 
-#: environment next-event estimation through a refracting convex mesh only up to this many flat faces (``render``)
-ENV_NEE_MAX_FLAT_FACES: int = 24
+#: environment next-event estimation through a refracting convex mesh only up to this many flat faces (``render``);
+#: was 24 while each face cost a Newton solve of a far point light's connection; the closed form for a light at
+#: infinity (:func:`.env_chains.distant_face_connections`) costs ~40 flops per face
+ENV_NEE_MAX_FLAT_FACES: int = 4096
+#: chains of internal reflections (:mod:`.env_chains`) only through convex bodies of at most this many flat faces
+#: (a drawn face sequence through a near-sphere almost never holds a chain: the cost would buy nothing)
+ENV_CHAIN_MAX_FLAT_FACES: int = 24
 
 
 def render(shape: Shape, media: Medium | Sequence[Medium], camera: Any, lights: Any, *, spp: int = 64,
@@ -375,7 +380,7 @@ def render(shape: Shape, media: Medium | Sequence[Medium], camera: Any, lights: 
     if k_chain < 0:
         raise ValueError(f"env_chain_reflections must be >= 0; got {env_chain_reflections!r}")
     chain_prm = np.zeros(0)
-    if env_nee and refracting and k_chain > 0:
+    if env_nee and refracting:
         if geo.kind == MESH and geo.convex and int(geo.params[0]) > 0:
             chain_prm = np.ascontiguousarray(geo.params, dtype=np.float64)
         elif geo.kind == BOX:
@@ -384,7 +389,7 @@ def render(shape: Shape, media: Medium | Sequence[Medium], camera: Any, lights: 
             lo, hi = np.asarray(geo.params[:3], float), np.asarray(geo.params[3:6], float)
             bt = trimesh.creation.box(bounds=np.stack([lo, hi]))
             chain_prm = np.ascontiguousarray(convex_face_table(bt.vertices, bt.faces))
-    if len(chain_prm) == 0:
+    if len(chain_prm) == 0 or int(chain_prm[0]) > ENV_CHAIN_MAX_FLAT_FACES:
         k_chain = 0
     far_mm = 1e6 * float(geo.scale_mm)
     want_d = bool(derivatives)

@@ -48,7 +48,7 @@ import math
 import numpy as np
 from numba import njit
 
-from .env_chains import chain_nee
+from .env_chains import chain_nee, distant_face_connections
 from .nee import point_light_nee
 from .optics import fresnel_r, reflect, refract, sample_hg_cos, spin
 from .rng import uniform
@@ -98,7 +98,8 @@ def walk(kind, prm, nbox, nidx, tris, eps_t, nudge, stack, x, y, z, dx, dy, dz, 
     sigma_a = sigma_t - sigma_s
     st_fd = sigma_t * (1.0 + _NEE_FD_REL)
     n_refl = 0  # internal reflections since the last collision
-    do_chain = do_env and chain_k > 0 and chain_prm.shape[0] > 0
+    env_faces = do_env and chain_prm.shape[0] > 0      # distant-light connections through the convex face table
+    do_chain = env_faces and chain_k > 0
     chain_work = np.zeros((max(chain_k, 0) + 1, 5))
     while True:
         state, u = uniform(state)
@@ -157,9 +158,24 @@ def walk(kind, prm, nbox, nidx, tris, eps_t, nudge, stack, x, y, z, dx, dy, dz, 
                         one_pos[0, 1] = far_mm * st_l * math.sin(phi)
                         one_pos[0, 2] = far_mm * ct_l
                         one_int[0] = env_nee[lo, 3] * env_nee[lo, 4] / pmf * far_mm * far_mm
-                        p_env = point_light_nee(kind, prm, nbox, nidx, tris, eps_t, stack, x, y, z, dx, dy, dz,
-                                                sigma_t, g, eta, one_pos, one_int, one_cdf, False, n_scan, nee_tau,
-                                                u_rr, 0.0, sigma_t)
+                        if env_faces:
+                            # the closed form with the light at infinity, gated like the chains below
+                            q_c = min(1.0, e_surf / nee_tau)
+                            l_over_pdf = env_nee[lo, 3] * env_nee[lo, 4] / pmf / q_c
+                            v_f, vl_f = distant_face_connections(chain_prm, x, y, z, dx, dy, dz, st_l * math.cos(phi),
+                                                                 st_l * math.sin(phi), ct_l, eta, sigma_t, g)
+                            c = w * albedo * l_over_pdf * v_f
+                            nee += c
+                            if want_d and v_f != 0.0:
+                                dconn = -w * albedo * l_over_pdf * vl_f
+                                tot_len = len0 + length
+                                nee_ds += c * (n0 + n_coll - sigma_s * tot_len) + sigma_s * dconn
+                                nee_da += -c * sigma_a * tot_len + sigma_a * dconn
+                            p_env = 0.0
+                        else:
+                            p_env = point_light_nee(kind, prm, nbox, nidx, tris, eps_t, stack, x, y, z, dx, dy, dz,
+                                                    sigma_t, g, eta, one_pos, one_int, one_cdf, False, n_scan,
+                                                    nee_tau, u_rr, 0.0, sigma_t)
                         c = w * albedo * p_env
                         nee += c
                         if want_d and p_env != 0.0:
