@@ -330,9 +330,9 @@ def render(shape: Shape, media: Medium | Sequence[Medium], camera: Any, lights: 
     the random stream it has in the whole frame, so chunks of rows stacked in order are bit-identical to the whole
     render (``rig.estimate.batch`` splits a render across Dask workers this way).
     ``env_nee``: sample an environment map's bright pixels by next-event estimation (:mod:`.walk`; not for
-    refracting non-convex meshes, whose connections are not supported, nor refracting meshes of more than
-    :data:`ENV_NEE_MAX_FLAT_FACES` flat faces, whose connections cost a scan of every face: there escaping paths
-    find them). ``env_chain_reflections``: with ``env_nee`` through a refracting convex faceted body (a convex mesh
+    refracting non-convex meshes, whose connections are not supported, nor refracting convex meshes of more than
+    :data:`ENV_NEE_MAX_FLAT_FACES` flat faces: there escaping paths find them; through refracting convex meshes and
+    boxes the connections are the closed form for a light at infinity, :func:`.env_chains.distant_face_connections`). ``env_chain_reflections``: with ``env_nee`` through a refracting convex faceted body (a convex mesh
     within that face limit, or a box), the connections also follow chains of up to this many internal reflections
     (:mod:`.env_chains`; default :data:`.env_chains.MAX_CHAIN_REFLECTIONS`, 0 = straight connections only, the
     estimator before issue 15's sun-lit scenes). Raises ValueError for a point light inside the
@@ -368,9 +368,10 @@ def render(shape: Shape, media: Medium | Sequence[Medium], camera: Any, lights: 
     # non-convex mesh does not have
     # (nor the analytic sphere's, whose stationary-point search is not made for a light 1e6 radii away: measured 0.08
     # of the path-traced image; a tessellated sphere works)
-    # and not through a refracting mesh of many flat faces: its connections are found face by face (measured on a
-    # 320-triangle icosphere, 255 flat faces: 5x the render time of plain path tracing; a 12 mm skimmilk sphere under
-    # a sun took > 10 min per 64 x 64 px, 128-spp render), where the escaping paths find the map's pixels instead
+    # and not through a refracting mesh of very many flat faces: its connections are found face by face (a Newton
+    # solve per face for the far point light made a 320-triangle icosphere 5x slower than plain path tracing; the
+    # closed form for a light at infinity, env_chains.distant_face_connections, costs ~40 flops per face: measured on
+    # the zoo's z03 icosphere by benchmarks/mc_sun_lobes.py, docs/monte-carlo.md "Sun lobes")
     refracting = abs(eta - 1.0) >= 1e-12
     env_nee = bool(env_nee) and not (geo.kind == MESH and refracting and (
         not geo.convex or int(geo.params[0]) > ENV_NEE_MAX_FLAT_FACES)) and not (geo.kind == SPHERE and refracting)
