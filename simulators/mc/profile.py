@@ -110,7 +110,7 @@ def _launch_kernel(start, count, seed, kind, prm, nbox, nidx, tris, eps_t, nudge
         status, x, y, z, dx, dy, dz, w, _nee, state, nc, _len, _ds, _da, _straight = walk(
             kind, prm, nbox, nidx, tris, eps_t, nudge, stack, ex - nudge * nx, ey - nudge * ny, ez - nudge * nz,
             dx, dy, dz, state, sigma_t, albedo, g, eta, rr_weight, rr_survival, max_collisions,
-            no_pos, no_val, no_val, False, 0, 1.0, False, 0, 0.0, np.zeros((0, 5)), 1, 1, 1.0)
+            no_pos, no_val, no_val, False, 0, 1.0, False, 0, 0.0, np.zeros((0, 5)), 1, 1, 1.0, np.zeros(0), 0)
         out_status[i] = status
         out_rec[i, 0] = x
         out_rec[i, 1] = y

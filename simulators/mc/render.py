@@ -41,11 +41,12 @@ import numpy as np
 import numpy.typing as npt
 from numba import njit, prange
 
+from .env_chains import MAX_CHAIN_REFLECTIONS
 from .lights import kernel_lights
 from .media import Medium
 from .optics import fresnel_r, reflect, refract
 from .rng import stream, uniform
-from .shapes import (MESH, SPHERE, STACK_SIZE, Shape, nearest_hit,
+from .shapes import (BOX, MESH, SPHERE, STACK_SIZE, Shape, convex_face_table, nearest_hit,
                      refracted_point_lights_supported)
 from .walk import EXITED, TRUNCATED, walk
 
@@ -97,7 +98,7 @@ def env_radiance(dx, dy, dz, env_map, has_map, aff, has_aff):
 def _trace_path(kind, prm, nbox, nidx, tris, eps_t, nudge, convex, stack, inside, x, y, z, dx, dy, dz, beta, state,
                 sigma_t, albedo, g, eta, rr_weight, rr_survival, max_collisions,
                 light_pos, light_int, light_cdf, sample_one, n_scan, nee_tau,
-                env_map, has_map, aff, has_aff, max_bounces, want_d, env_rest, env_nee, far_mm):
+                env_map, has_map, aff, has_aff, max_bounces, want_d, env_rest, env_nee, far_mm, chain_prm, chain_k):
     """Radiance estimate of one camera path with throughput ``beta`` that starts just inside the medium
     (``inside``) or just outside it, travelling along d. Alternates walks inside and ray segments outside
     (Fresnel sampled at every hit from outside) until the path escapes, is absorbed or hits ``max_bounces``.
@@ -124,7 +125,7 @@ def _trace_path(kind, prm, nbox, nidx, tris, eps_t, nudge, convex, stack, inside
                 kind, prm, nbox, nidx, tris, eps_t, nudge, stack, x, y, z, dx, dy, dz, state,
                 sigma_t, albedo, g, eta, rr_weight, rr_survival, max_collisions,
                 light_pos, light_int, light_cdf, sample_one, n_scan, nee_tau, want_d, n_coll, len_in,
-                env_nee, env_map.shape[0], env_map.shape[1], far_mm)
+                env_nee, env_map.shape[0], env_map.shape[1], far_mm, chain_prm, chain_k)
             n_coll += nc
             len_in += seg_len
             value += beta * nee
@@ -178,7 +179,7 @@ def _trace_path(kind, prm, nbox, nidx, tris, eps_t, nudge, convex, stack, inside
 def _render_kernel(origins, dirs, spp, seed, channel, pixel_offset, kind, prm, nbox, nidx, tris, eps_t, nudge, convex,
                    sigma_t, albedo, g, eta, rr_weight, rr_survival, max_collisions,
                    light_pos, light_int, light_cdf, sample_one, n_scan, nee_tau,
-                   env_map, has_map, aff, has_aff, include_specular, max_bounces, want_d, env_rest, env_nee, far_mm,
+                   env_map, has_map, aff, has_aff, include_specular, max_bounces, want_d, env_rest, env_nee, far_mm, chain_prm, chain_k,
                    fd_h, sigma_t2, albedo2,
                    out_mean, out_se, out_hit, out_coll, out_trunc, out_d, out_d_se):
     n_pix = origins.shape[0]
@@ -228,7 +229,7 @@ def _render_kernel(origins, dirs, spp, seed, channel, pixel_offset, kind, prm, n
                         hx - nudge * nx, hy - nudge * ny, hz - nudge * nz, tx, ty, tz, beta0, state,
                         sigma_t, albedo, g, eta, rr_weight, rr_survival, max_collisions,
                         light_pos, light_int, light_cdf, sample_one, n_scan, nee_tau,
-                        env_map, has_map, aff, has_aff, max_bounces, want_d, env_rest, env_nee, far_mm)
+                        env_map, has_map, aff, has_aff, max_bounces, want_d, env_rest, env_nee, far_mm, chain_prm, chain_k)
                     coll += nc
                     if tr:
                         trunc += 1
@@ -238,7 +239,7 @@ def _render_kernel(origins, dirs, spp, seed, channel, pixel_offset, kind, prm, n
                         hx + nudge * nx, hy + nudge * ny, hz + nudge * nz, rx, ry, rz, fr, state,
                         sigma_t, albedo, g, eta, rr_weight, rr_survival, max_collisions,
                         light_pos, light_int, light_cdf, sample_one, n_scan, nee_tau,
-                        env_map, has_map, aff, has_aff, max_bounces, want_d, env_rest, env_nee, far_mm)
+                        env_map, has_map, aff, has_aff, max_bounces, want_d, env_rest, env_nee, far_mm, chain_prm, chain_k)
                     val += v2
                     val_s += v2_s
                     val_a += v2_a
@@ -255,14 +256,14 @@ def _render_kernel(origins, dirs, spp, seed, channel, pixel_offset, kind, prm, n
                             hx - nudge * nx, hy - nudge * ny, hz - nudge * nz, tx, ty, tz, beta0, state,
                             sigma_t2, albedo2, g, eta, rr_weight, rr_survival, max_collisions,
                             light_pos, light_int, light_cdf, sample_one, n_scan, nee_tau,
-                            env_map, has_map, aff, has_aff, max_bounces, False, env_rest, env_nee, far_mm)
+                            env_map, has_map, aff, has_aff, max_bounces, False, env_rest, env_nee, far_mm, chain_prm, chain_k)
                     if spec_paths and fr > 0.0:
                         w2, _s2, _a2, state, nc, tr = _trace_path(
                             kind, prm, nbox, nidx, tris, eps_t, nudge, convex, stack, False,
                             hx + nudge * nx, hy + nudge * ny, hz + nudge * nz, rx, ry, rz, fr, state,
                             sigma_t2, albedo2, g, eta, rr_weight, rr_survival, max_collisions,
                             light_pos, light_int, light_cdf, sample_one, n_scan, nee_tau,
-                            env_map, has_map, aff, has_aff, max_bounces, False, env_rest, env_nee, far_mm)
+                            env_map, has_map, aff, has_aff, max_bounces, False, env_rest, env_nee, far_mm, chain_prm, chain_k)
                         w1 += w2
                     val_s = (w1 - val) / fd_h
                 delta = val - mean
@@ -295,15 +296,21 @@ def _media_list(media: Medium | Sequence[Medium]) -> list[Medium]:
     return out
 
 
-#: environment next-event estimation through a refracting convex mesh only up to this many flat faces (``render``)
-ENV_NEE_MAX_FLAT_FACES: int = 24
+#: environment next-event estimation through a refracting convex mesh only up to this many flat faces (``render``);
+#: was 24 while each face cost a Newton solve of a far point light's connection; the closed form for a light at
+#: infinity (:func:`.env_chains.distant_face_connections`) costs ~40 flops per face
+ENV_NEE_MAX_FLAT_FACES: int = 4096
+#: chains of internal reflections (:mod:`.env_chains`) only through convex bodies of at most this many flat faces
+#: (a drawn face sequence through a near-sphere almost never holds a chain: the cost would buy nothing)
+ENV_CHAIN_MAX_FLAT_FACES: int = 24
 
 
 def render(shape: Shape, media: Medium | Sequence[Medium], camera: Any, lights: Any, *, spp: int = 64,
            seed: int = 0, include_specular: bool = False, nee_tau: float = 1.0, rr_weight: float = 0.01,
            rr_survival: float = 0.1, max_collisions: int = 1_000_000, max_bounces: int = 64,
            n_scan: int = 32, max_sampled_lights: int = 8, derivatives: bool = False, env_nee: bool = True,
-           fd_log_sigma_s: float = 0.0, rows: tuple[int, int] | None = None) -> MCImage:
+           fd_log_sigma_s: float = 0.0, rows: tuple[int, int] | None = None,
+           env_chain_reflections: int | None = None) -> MCImage:
     """Render ``shape`` filled with ``media`` (one :class:`Medium` per colour channel, all with the same eta) as
     seen by ``camera`` (anything with ``width_px``, ``height_px``, ``pixel_rays()``: PinholeCamera,
     OrthographicCamera) under ``lights`` (see :mod:`.lights`).
@@ -323,9 +330,12 @@ def render(shape: Shape, media: Medium | Sequence[Medium], camera: Any, lights: 
     the random stream it has in the whole frame, so chunks of rows stacked in order are bit-identical to the whole
     render (``rig.estimate.batch`` splits a render across Dask workers this way).
     ``env_nee``: sample an environment map's bright pixels by next-event estimation (:mod:`.walk`; not for
-    refracting non-convex meshes, whose connections are not supported, nor refracting meshes of more than
-    :data:`ENV_NEE_MAX_FLAT_FACES` flat faces, whose connections cost a scan of every face: there escaping paths
-    find them). Raises ValueError for a point light inside the
+    refracting non-convex meshes, whose connections are not supported, nor refracting convex meshes of more than
+    :data:`ENV_NEE_MAX_FLAT_FACES` flat faces: there escaping paths find them; through refracting convex meshes and
+    boxes the connections are the closed form for a light at infinity, :func:`.env_chains.distant_face_connections`). ``env_chain_reflections``: with ``env_nee`` through a refracting convex faceted body (a convex mesh
+    within that face limit, or a box), the connections also follow chains of up to this many internal reflections
+    (:mod:`.env_chains`; default :data:`.env_chains.MAX_CHAIN_REFLECTIONS`, 0 = straight connections only, the
+    estimator before issue 15's sun-lit scenes). Raises ValueError for a point light inside the
     object, or for media with different eta. Point lights with eta != 1 through a non-convex mesh: every face
     plane is searched up to :data:`.shapes.MAX_CONNECTION_PLANES` planes, beyond that the triangles within the
     connection radius found by the BVH (:func:`.nee.bvh_mesh_connections`).
@@ -358,13 +368,30 @@ def render(shape: Shape, media: Medium | Sequence[Medium], camera: Any, lights: 
     # non-convex mesh does not have
     # (nor the analytic sphere's, whose stationary-point search is not made for a light 1e6 radii away: measured 0.08
     # of the path-traced image; a tessellated sphere works)
-    # and not through a refracting mesh of many flat faces: its connections are found face by face (measured on a
-    # 320-triangle icosphere, 255 flat faces: 5x the render time of plain path tracing; a 12 mm skimmilk sphere under
-    # a sun took > 10 min per 64 x 64 px, 128-spp render), where the escaping paths find the map's pixels instead
+    # and not through a refracting mesh of very many flat faces: its connections are found face by face (a Newton
+    # solve per face for the far point light made a 320-triangle icosphere 5x slower than plain path tracing; the
+    # closed form for a light at infinity, env_chains.distant_face_connections, costs ~40 flops per face: measured on
+    # the zoo's z03 icosphere by benchmarks/mc_sun_lobes.py, docs/monte-carlo.md "Sun lobes")
     refracting = abs(eta - 1.0) >= 1e-12
     env_nee = bool(env_nee) and not (geo.kind == MESH and refracting and (
         not geo.convex or int(geo.params[0]) > ENV_NEE_MAX_FLAT_FACES)) and not (geo.kind == SPHERE and refracting)
     no_nee = np.zeros((0, 5))
+    # chains of internal reflections to the sun pixels (:mod:`.env_chains`): convex faceted bodies at eta != 1
+    k_chain = MAX_CHAIN_REFLECTIONS if env_chain_reflections is None else int(env_chain_reflections)
+    if k_chain < 0:
+        raise ValueError(f"env_chain_reflections must be >= 0; got {env_chain_reflections!r}")
+    chain_prm = np.zeros(0)
+    if env_nee and refracting:
+        if geo.kind == MESH and geo.convex and int(geo.params[0]) > 0:
+            chain_prm = np.ascontiguousarray(geo.params, dtype=np.float64)
+        elif geo.kind == BOX:
+            import trimesh
+
+            lo, hi = np.asarray(geo.params[:3], float), np.asarray(geo.params[3:6], float)
+            bt = trimesh.creation.box(bounds=np.stack([lo, hi]))
+            chain_prm = np.ascontiguousarray(convex_face_table(bt.vertices, bt.faces))
+    if len(chain_prm) == 0 or int(chain_prm[0]) > ENV_CHAIN_MAX_FLAT_FACES:
+        k_chain = 0
     far_mm = 1e6 * float(geo.scale_mm)
     want_d = bool(derivatives)
     d_all = np.zeros((n, len(ms), 2)) if want_d else None
@@ -394,6 +421,7 @@ def render(shape: Shape, media: Medium | Sequence[Medium], camera: Any, lights: 
                        L.positions_mm, L.intensity, L.cdf, sample_one, int(n_scan), float(nee_tau),
                        L.env_map, L.has_map, L.affine, L.has_affine, bool(include_specular), int(max_bounces),
                        want_d, env_rest if env_nee else L.env_map, L.env_nee if env_nee else no_nee, far_mm,
+                       chain_prm, k_chain,
                        fd_h, m2.sigma_t_per_mm if m2 is not None else 1.0, m2.albedo if m2 is not None else 1.0,
                        mean_c, se_c, hit, coll, trunc, d_c, d_se_c)
         rad[:, c] = mean_c

@@ -24,7 +24,12 @@ L / pdf): the refracted connections of :mod:`.nee`, roulette, occlusion and deri
 look those pixels up as 0 (the renderer passes the map without them) when they left straight from their last
 scattering vertex — exactly the paths the connection covers; a path whose last stretch inside had an internal
 (Fresnel or total) reflection, or that never scattered, still finds them (measured without this split: a box at
-eta 1.3 under a sun 3.4 % dark, 2.8 standard errors), so nothing is counted twice or lost. Pharr, Jakob,
+eta 1.3 under a sun 3.4 % dark, 2.8 standard errors), so nothing is counted twice or lost. Through a refracting
+convex faceted body (``chain_prm``, a face table) the straight connection is the closed form for a light at
+infinity (:func:`.env_chains.distant_face_connections`), and chains of 1..``chain_k`` internal reflections are
+connected as well (:func:`.env_chains.chain_nee`); escaping paths then look the sun pixels up as 0 after at most
+``chain_k`` internal reflections since their last scattering vertex (the reflected lookups carried 98-99 % of the
+sun-lit variance of the zoo's boxes, docs/monte-carlo.md "Sun lobes"). Pharr, Jakob,
 Humphreys PBR 3rd ed. sec. 14.2.4 (infinite area lights sampled by a piecewise-constant distribution).
 
 Derivatives (``want_d``): the same paths also estimate the derivatives of every contribution with respect to
@@ -48,6 +53,7 @@ import math
 import numpy as np
 from numba import njit
 
+from .env_chains import chain_nee, distant_face_connections
 from .nee import point_light_nee
 from .optics import fresnel_r, reflect, refract, sample_hg_cos, spin
 from .rng import uniform
@@ -67,7 +73,7 @@ _NEE_FD_REL = 1e-6
 def walk(kind, prm, nbox, nidx, tris, eps_t, nudge, stack, x, y, z, dx, dy, dz, state,
          sigma_t, albedo, g, eta, rr_weight, rr_survival, max_collisions,
          light_pos, light_int, light_cdf, sample_one, n_scan, nee_tau, want_d, n0, len0,
-         env_nee, env_h, env_w, far_mm):
+         env_nee, env_h, env_w, far_mm, chain_prm, chain_k):
     """Walk from (x, y, z) inside along unit (dx, dy, dz) with weight 1.
 
     Returns (status, x, y, z, dx, dy, dz, weight, nee, state, collisions, length, nee_ds, nee_da, straight): at EXITED the
@@ -76,7 +82,10 @@ def walk(kind, prm, nbox, nidx, tris, eps_t, nudge, stack, x, y, z, dx, dy, dz, 
     flight to the boundary). With ``want_d``, ``nee_ds`` and ``nee_da`` are the derivatives of ``nee`` with
     respect to log sigma_s and log sigma_a (module docstring), for a path that had ``n0`` scattering events and
     length ``len0`` inside before this walk (non-convex bodies are entered several times); else 0. ``straight``: the
-    path has scattered and left straight from its last scattering vertex (no internal reflection since).
+    path has scattered and left from its last scattering vertex after at most ``chain_k`` internal reflections (0:
+    straight), i.e. on a chain the environment connections cover. ``chain_prm``: the convex face table through
+    which the environment connections also follow chains of 1..``chain_k`` internal reflections
+    (:func:`.env_chains.chain_nee`; ``chain_k`` = 0: straight connections only).
     """
     w = 1.0
     nee = 0.0
@@ -93,7 +102,10 @@ def walk(kind, prm, nbox, nidx, tris, eps_t, nudge, stack, x, y, z, dx, dy, dz, 
     sigma_s = sigma_t * albedo
     sigma_a = sigma_t - sigma_s
     st_fd = sigma_t * (1.0 + _NEE_FD_REL)
-    reflected = False  # an internal reflection since the last collision
+    n_refl = 0  # internal reflections since the last collision
+    env_faces = do_env and chain_prm.shape[0] > 0      # distant-light connections through the convex face table
+    do_chain = env_faces and chain_k > 0
+    chain_work = np.zeros((max(chain_k, 0) + 1, 5))
     while True:
         state, u = uniform(state)
         s = -math.log(u) / sigma_t
@@ -106,7 +118,7 @@ def walk(kind, prm, nbox, nidx, tris, eps_t, nudge, stack, x, y, z, dx, dy, dz, 
             z += s * dz
             length += s
             n_coll += 1
-            reflected = False
+            n_refl = 0
             if do_nee:
                 state, u_rr = uniform(state)
                 # every connection's roulette probability is <= exp(-sigma_t d_surf) / nee_tau: reject cheaply
@@ -127,7 +139,8 @@ def walk(kind, prm, nbox, nidx, tris, eps_t, nudge, stack, x, y, z, dx, dy, dz, 
                         nee_da += -c * sigma_a * tot_len + sigma_a * dconn
             if do_env:
                 state, u_rr = uniform(state)
-                if u_rr * nee_tau < math.exp(-sigma_t * surface_distance(kind, prm, x, y, z)):
+                e_surf = math.exp(-sigma_t * surface_distance(kind, prm, x, y, z))
+                if u_rr * nee_tau < e_surf:
                     state, u_p = uniform(state)
                     state, u_t = uniform(state)
                     state, u_f = uniform(state)
@@ -150,9 +163,24 @@ def walk(kind, prm, nbox, nidx, tris, eps_t, nudge, stack, x, y, z, dx, dy, dz, 
                         one_pos[0, 1] = far_mm * st_l * math.sin(phi)
                         one_pos[0, 2] = far_mm * ct_l
                         one_int[0] = env_nee[lo, 3] * env_nee[lo, 4] / pmf * far_mm * far_mm
-                        p_env = point_light_nee(kind, prm, nbox, nidx, tris, eps_t, stack, x, y, z, dx, dy, dz,
-                                                sigma_t, g, eta, one_pos, one_int, one_cdf, False, n_scan, nee_tau,
-                                                u_rr, 0.0, sigma_t)
+                        if env_faces:
+                            # the closed form with the light at infinity, gated like the chains below
+                            q_c = min(1.0, e_surf / nee_tau)
+                            l_over_pdf = env_nee[lo, 3] * env_nee[lo, 4] / pmf / q_c
+                            v_f, vl_f = distant_face_connections(chain_prm, x, y, z, dx, dy, dz, st_l * math.cos(phi),
+                                                                 st_l * math.sin(phi), ct_l, eta, sigma_t, g)
+                            c = w * albedo * l_over_pdf * v_f
+                            nee += c
+                            if want_d and v_f != 0.0:
+                                dconn = -w * albedo * l_over_pdf * vl_f
+                                tot_len = len0 + length
+                                nee_ds += c * (n0 + n_coll - sigma_s * tot_len) + sigma_s * dconn
+                                nee_da += -c * sigma_a * tot_len + sigma_a * dconn
+                            p_env = 0.0
+                        else:
+                            p_env = point_light_nee(kind, prm, nbox, nidx, tris, eps_t, stack, x, y, z, dx, dy, dz,
+                                                    sigma_t, g, eta, one_pos, one_int, one_cdf, False, n_scan,
+                                                    nee_tau, u_rr, 0.0, sigma_t)
                         c = w * albedo * p_env
                         nee += c
                         if want_d and p_env != 0.0:
@@ -163,6 +191,23 @@ def walk(kind, prm, nbox, nidx, tris, eps_t, nudge, stack, x, y, z, dx, dy, dz, 
                             tot_len = len0 + length
                             nee_ds += c * (n0 + n_coll - sigma_s * tot_len) + sigma_s * dconn
                             nee_da += -c * sigma_a * tot_len + sigma_a * dconn
+                        if do_chain:
+                            # chains of internal reflections to the same sun direction, evaluated with the gate's
+                            # probability q = min(1, exp(-sigma_t d_surf) / nee_tau) (every chain is longer than
+                            # d_surf) and divided by it
+                            q_c = min(1.0, e_surf / nee_tau)
+                            v_ch, vl_ch, state = chain_nee(chain_prm, x, y, z, dx, dy, dz, st_l * math.cos(phi),
+                                                           st_l * math.sin(phi), ct_l, eta, sigma_t, g, chain_k,
+                                                           chain_work, state)
+                            if v_ch != 0.0:
+                                l_over_pdf = env_nee[lo, 3] * env_nee[lo, 4] / pmf / q_c
+                                c = w * albedo * l_over_pdf * v_ch
+                                nee += c
+                                if want_d:
+                                    dconn = -w * albedo * l_over_pdf * vl_ch   # d c / d sigma_t (attenuation)
+                                    tot_len = len0 + length
+                                    nee_ds += c * (n0 + n_coll - sigma_s * tot_len) + sigma_s * dconn
+                                    nee_da += -c * sigma_a * tot_len + sigma_a * dconn
             w *= albedo
             if w < rr_weight:
                 state, u = uniform(state)
@@ -189,7 +234,7 @@ def walk(kind, prm, nbox, nidx, tris, eps_t, nudge, stack, x, y, z, dx, dy, dz, 
                 x -= nudge * nx
                 y -= nudge * ny
                 z -= nudge * nz
-                reflected = True
+                n_refl += 1
             else:
                 ok, tx, ty, tz = refract(dx, dy, dz, -nx, -ny, -nz, inv_eta)
                 if not ok:  # numerically at the critical angle: reflect
@@ -197,10 +242,10 @@ def walk(kind, prm, nbox, nidx, tris, eps_t, nudge, stack, x, y, z, dx, dy, dz, 
                     x -= nudge * nx
                     y -= nudge * ny
                     z -= nudge * nz
-                    reflected = True
+                    n_refl += 1
                     continue
                 x += nudge * nx
                 y += nudge * ny
                 z += nudge * nz
                 return (EXITED, x, y, z, tx, ty, tz, w, nee, state, n_coll, length, nee_ds, nee_da,
-                        (n0 + n_coll) > 0 and not reflected)
+                        (n0 + n_coll) > 0 and n_refl <= (chain_k if do_chain else 0))
