@@ -45,8 +45,9 @@ meshes only: on a convex one the fits are the same).
 Run: ``python benchmarks/scene_zoo.py [--quick] [--family zoo|nonconvex|all] [--json FILE] [--reference-spp N]
 [--reference-iterations K] [--scenes 0,3,7] [--models mc-table,...] [--shadows auto|on|off|both]``. Cost, measured on 2 shared cores (NUMBA_NUM_THREADS=2): the full zoo
 (64 x 64 px frames; references 128 spp, at most 6 renders) ~11 min before the frame rule, of which the frames
-~1.5 min (first run only) and mc-table+reference ~6 min; the frame rule's camera / zeros frames cost ~10-25 min more
-on the first run (1 thread, loaded machine: z02 121 s, z21 261 s, z18 the most; docs/model-error.md sec. 4); ``--quick`` (6 scenes covering unlit face, eta = 1, sun, fireflies, zeros, camera
+~1.5 min (first run only) and mc-table+reference ~6 min; the frame rule's camera / zeros frames cost ~33 min of renders
+on the first run (1967 s summed over the 28 frames, 1 thread each, load 6-12: z18 442 s, z05 305 s, z21 261 s;
+docs/model-error.md sec. 4); ``--quick`` (6 scenes covering unlit face, eta = 1, sun, fireflies, zeros, camera
 noise; 48 x 48 px, 64-spp frames, 32-spp references, at most 4 renders) ~50-75 s. Each scene also prints a *file
 check*: the Monte Carlo reference rendered from the scene file at the true parameters over the frame (~1 when the
 file describes what was rendered). The exit status is 0 whatever the verdicts (they are printed;
