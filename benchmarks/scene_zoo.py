@@ -13,10 +13,14 @@ failure class of issue 15 at least once; each scene's name lists its classes:
   (benchmarks/zoo/frames.py);
 - ``eta1`` / ``eta1.3`` / ``eta1.5`` (three or more eta = 1 cubes: index-matched boundary);
 - material-channel from science.md sec. 2 (marble, skin1, apple, skimmilk, ketchup-R, potato-B; three RGB scenes);
-- noise ``mc`` (the Monte Carlo frame at 32 spp, fireflies; float EXR), ``zeros`` (point-lit scenes only: 256-spp
-  frame, shot + read noise clipped at 0 after black-level subtraction: dark pixels exactly 0), ``camera`` (256-spp
-  frame, 1024 under a sun; Poisson-Gaussian with a stated gain in electrons per value and read noise; float EXR or
-  16-bit PNG); ``noise-section``: the scene file's ``[noise]`` holds the true gain and read noise (else none).
+- noise ``mc`` (the Monte Carlo frame at 32 spp, fireflies; float EXR), ``zeros`` (point-lit scenes only: shot +
+  read noise clipped at 0 after black-level subtraction: dark pixels exactly 0), ``camera`` (Poisson-Gaussian with a
+  stated gain in electrons per value and read noise; float EXR or 16-bit PNG); the camera / zeros frames are
+  rendered from a 256-spp pilot (1024 under a sun) until their Monte Carlo sd is at most 1/3 of the camera's at 95 %
+  of the object's pixel-channels, at most 16x the pilot under a sky, 4x under a sun, 2x under point lights (the frame
+  rule, benchmarks/zoo/frames.py; off in ``--quick``); ``noise-section``: the scene file's ``[noise]`` holds the
+  true gain and read noise, or — where the cap left Monte Carlo noise above the rule — a ``stderr_path`` image of
+  the camera's and the renderer's noise together (else no section).
   Point-lit spheres are drawn at eta = 1 (the renderer's refracted point-light connection is face by face, ~50x
   slower on the 320-face icosphere than on a cube).
 
@@ -40,8 +44,10 @@ meshes only: on a convex one the fits are the same).
 
 Run: ``python benchmarks/scene_zoo.py [--quick] [--family zoo|nonconvex|all] [--json FILE] [--reference-spp N]
 [--reference-iterations K] [--scenes 0,3,7] [--models mc-table,...] [--shadows auto|on|off|both]``. Cost, measured on 2 shared cores (NUMBA_NUM_THREADS=2): the full zoo
-(64 x 64 px frames; references 128 spp, at most 6 renders) ~11 min, of which the frames ~1.5 min (first run only)
-and mc-table+reference ~6 min; ``--quick`` (6 scenes covering unlit face, eta = 1, sun, fireflies, zeros, camera
+(64 x 64 px frames; references 128 spp, at most 6 renders) ~11 min before the frame rule, of which the frames
+~1.5 min (first run only) and mc-table+reference ~6 min; the frame rule's camera / zeros frames cost ~33 min of renders
+on the first run (1967 s summed over the 28 frames, 1 thread each, load 6-12: z18 442 s, z05 305 s, z21 261 s;
+docs/model-error.md sec. 4); ``--quick`` (6 scenes covering unlit face, eta = 1, sun, fireflies, zeros, camera
 noise; 48 x 48 px, 64-spp frames, 32-spp references, at most 4 renders) ~50-75 s. Each scene also prints a *file
 check*: the Monte Carlo reference rendered from the scene file at the true parameters over the frame (~1 when the
 file describes what was rendered). The exit status is 0 whatever the verdicts (they are printed;
@@ -178,9 +184,14 @@ def print_scene(spec: SceneSpec, meta: dict[str, Any], folder: Path, results: li
              f"{meta['read_noise_value']:.3g} (value units), {spec.image_format}" if spec.noise == "camera"
              else "Monte Carlo noise only (float EXR)")
     print(f"\n## {spec.name}  [{folder.name}]\n")
-    print(f"frame {spec.size_px}x{spec.size_px} px, {meta['frame_spp']} spp (MC rel. stderr median "
-          f"{meta['mc_rel_stderr_median']:.1%}, max/p99 {meta['max_over_p99']:.1f}), {noise}; [noise] "
-          f"{'given (true gain/read noise)' if spec.noise_section else 'absent'}; exact zeros "
+    spp = meta.get("frame_spp_rendered", meta["frame_spp"])
+    rule = meta.get("mc_over_camera_sd")
+    rule_txt = (f"; MC sd / camera sd median {rule['median']:.2f}, p95 {rule['p95']:.2f}, within 1/3 at "
+                f"{rule['fraction_within_rule']:.0%}" if rule else "")
+    stated = meta.get("noise_stated") or "given (true gain/read noise)"
+    print(f"frame {spec.size_px}x{spec.size_px} px, {spp} spp (pilot {meta['frame_spp']}; MC rel. stderr median "
+          f"{meta['mc_rel_stderr_median']:.1%}, max/p99 {meta['max_over_p99']:.1f}{rule_txt}), {noise}; [noise] "
+          f"{stated if spec.noise_section else 'absent'}; exact zeros "
           f"{meta['zero_fraction']:.1%} of object pixels; {meta['object_pixels']} object px; patches <= "
           f"{meta['max_edge_mm']} mm; render {meta['render_seconds']:.1f} s"
           f"{' (cached)' if meta.get('cached') else ''}")
@@ -258,6 +269,30 @@ def summarize(scenes: list[dict[str, Any]], models: tuple[str, ...]) -> dict[str
     return verdict
 
 
+def merge(paths: list[Path], out: Path | None) -> int:
+    """The verdicts of several runs' JSON files taken together (``--merge``): the runs must share models and
+    reference settings, and no scene may appear twice."""
+    import json
+
+    docs = [json.loads(p.read_text()) for p in paths]
+    keys = {(tuple(d["models"]), d["reference_spp"], d["reference_iterations"], d["quick"]) for d in docs}
+    if len(keys) != 1:
+        raise SystemExit(f"--merge: the runs differ in models / reference spp / iterations / --quick: {sorted(keys)}")
+    scenes = sorted((s for d in docs for s in d["scenes"]), key=lambda s: s["name"])
+    names = [s["name"] for s in scenes]
+    if len(set(names)) != len(names):
+        raise SystemExit(f"--merge: a scene appears twice: {sorted(n for n in set(names) if names.count(n) > 1)}")
+    models = tuple(docs[0]["models"])
+    print(f"# Scene zoo (issue 15), merged: {len(scenes)} scenes from {len(paths)} runs "
+          f"({', '.join(str(p) for p in paths)}); run seconds {' + '.join(str(round(d['seconds'])) for d in docs)}")
+    verdict = summarize(scenes, models)
+    if out is not None:
+        write_json(out, {**{k: docs[0][k] for k in ("quick", "reference_spp", "reference_iterations", "models")},
+                         "scenes": scenes, "acceptance": verdict, "seconds": sum(d["seconds"] for d in docs),
+                         "merged_from": [str(p) for p in paths]}, indent=1)
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="the CI subset: 6 scenes, 48 x 48 px, 64-spp frames")
@@ -275,7 +310,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--shadows", choices=["auto", "on", "off", "both"], default="auto",
                     help="cast shadows in the estimates (default auto: on for non-convex meshes); 'both' also prints "
                          "every fit with shadows off beside it (the acceptance rules use the first)")
+    ap.add_argument("--merge", type=Path, nargs="+", metavar="JSON",
+                    help="print the summary, class table and acceptance of the scenes of several --json files "
+                         "(runs over disjoint --scenes, same models and reference settings) and exit")
     args = ap.parse_args(argv)
+    if args.merge:
+        return merge(args.merge, args.json)
     ref_spp = args.reference_spp or (32 if args.quick else 128)
     ref_it = args.reference_iterations or (4 if args.quick else 6)
     models = tuple(args.models.split(",")) if args.models else MODELS

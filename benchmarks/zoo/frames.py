@@ -30,6 +30,20 @@ Noise (:func:`apply_noise`; values v = radiance x ``radiance_scale`` k):
   result clipped at 0 (a raw developer's ``max(raw - black, 0)``): dark pixels become exactly 0. The read noise is
   raised to twice the 2nd percentile of the object's values (at most 0.03) so that zeros occur on every scene
   (the class is drawn with point lights only: they leave dark pixels).
+
+The frame rule (``camera`` / ``zeros``, :func:`frame_spp_needed`): these classes claim the camera's noise and
+nothing else, so the frame's own Monte Carlo noise must be well below it. The ``frame_spp`` render is a pilot; from
+the renderer's per-pixel standard error (``MCImage.stderr``, scaled by k) and the camera's sd at the pilot's values
+(sqrt(v / g + r^2)) the spp is raised so that the Monte Carlo sd is at most 1/3 of the camera sd at 95 % of the
+object's pixel-channels (stderr ~ 1/sqrt(spp); a multiple of the pilot spp, at most 16x under a sky, 4x under a
+sun — whose pilot is already 1024 spp —, 2x under point lights: :data:`MAX_SPP_FACTOR`, the zoo's cost), and a
+second render adds the missing paths (seed ``frame_seed`` + 500). At 1/3 the Monte Carlo part adds at most ~5 % to
+the noise sd the scene file states. Where the cap binds (the rule holds at < 95 % of the pixel-channels) and the
+scene has a ``[noise]`` section, the section is a ``stderr_path`` image instead (:func:`stated_stderr`: the camera
+part from the observed values, as ``electrons_per_value`` + ``read_noise`` would give it, plus k x the renderer's
+stderr), so that every stated noise is the frame's noise; without a section the estimator fits the noise to the
+image (docs/scene-file.md). ``meta.json`` records the spp rendered and the achieved ratio (median, 95th percentile, the
+fraction of pixel-channels within 1/3). The ``mc`` class keeps its 32-spp frame (heavy tails by design).
 """
 from __future__ import annotations
 
@@ -50,6 +64,14 @@ from .scenes import SUN_SIGMA_DEG, SceneSpec, l_d_min_mm
 BLACK_LEVEL = 0.02
 SKY_RADIANCE = 0.2          # dim sky (radiance units of the lights), ~10x less irradiance than the sun lobe
 SUN_IRRADIANCE = 4.0        # the sun lobe's irradiance on a surface facing it
+MC_SD_RATIO = 1.0 / 3.0     # frame rule: Monte Carlo sd <= this x the camera sd ...
+MC_SD_QUANTILE = 0.95       # ... at this fraction of the object's pixel-channels
+#: ... rendering at most this x the pilot's spp, by light (beyond it the scene file states the rest, module docstring):
+#: the zoo's cost on 2 shared cores. Measured per collision (32-spp renders, 1 thread): sky 0.7-1.0 us, sun 2.6-3.9
+#: us, point lights 1.9-4.4 us (the refracted connections); a 256-spp point-lit pilot takes 2.5-93 s (z18), the
+#: sun's 1024-spp pilots 6-36 s, a sky's 2-5 s
+MAX_SPP_FACTOR = {"sky": 16, "sun": 4, "point1": 2, "point2": 2}
+TOP_UP_SEED_OFFSET = 500    # seed of the frame's second render: frame_seed + this (frame seeds are 1000 + index)
 _THIS = Path(__file__).resolve()
 
 
@@ -116,9 +138,34 @@ def _camera(spec: SceneSpec, rot: np.ndarray) -> Any:
 
 
 def render_frame(spec: SceneSpec) -> dict[str, Any]:
-    """The Monte Carlo frame (radiance, stderr (H, W, C), mask) and its statistics."""
+    """The Monte Carlo frame (radiance, stderr (H, W, C), mask) and its statistics. ``camera`` / ``zeros``: rendered
+    until the frame's Monte Carlo noise is below the camera's (:func:`frame_spp_needed`, module docstring): the
+    ``frame_spp`` render is the pilot, a second render (seed ``frame_seed`` + :data:`TOP_UP_SEED_OFFSET`) adds the
+    missing paths and the two are averaged with weights spp / total."""
+    from simulators.mc import render
+
+    shape, media, camera, lights = _render_setup(spec)
+    img = render(shape, media, camera, lights, spp=spec.frame_spp, seed=spec.frame_seed)
+    rad, se, seconds, trunc = img.radiance, img.stderr, img.seconds, img.truncated_fraction
+    spp = spec.frame_spp
+    needed = frame_spp_needed(spec, rad, se, img.mask)
+    if needed > spp:
+        extra = needed - spp
+        top = render(shape, media, camera, lights, spp=extra, seed=spec.frame_seed + TOP_UP_SEED_OFFSET)
+        w = spp / needed
+        rad = w * rad + (1 - w) * top.radiance
+        se = np.sqrt(np.square(w * se) + np.square((1 - w) * top.stderr))
+        seconds += top.seconds
+        trunc = w * trunc + (1 - w) * top.truncated_fraction
+        spp = needed
+    return {"radiance": rad, "stderr": se, "mask": img.mask, "seconds": seconds, "spp": spp,
+            "pilot_spp": spec.frame_spp, "paths": int(img.mask.sum()) * spp * len(media), "truncated": trunc}
+
+
+def _render_setup(spec: SceneSpec) -> tuple[Any, list[Any], Any, list[Any]]:
+    """(shape, media, camera, lights) of the frame render (module docstring)."""
     from estimation.single_image import EnvironmentMap, PointLights
-    from simulators.mc import Medium, Mesh, render
+    from simulators.mc import Medium, Mesh
 
     rot = np.eye(3)
     lights: list[Any] = []
@@ -132,23 +179,52 @@ def render_frame(spec: SceneSpec) -> dict[str, Any]:
     shape = Mesh(trimesh.Trimesh(mesh.vertices @ rot.T, mesh.faces, process=False))
     media = [Medium.from_reduced(float(s), float(a), eta=spec.eta)
              for s, a in zip(spec.sigma_s_prime_per_mm, spec.sigma_a_per_mm)]
-    img = render(shape, media, _camera(spec, rot), lights, spp=spec.frame_spp, seed=spec.frame_seed)
-    return {"radiance": img.radiance, "stderr": img.stderr, "mask": img.mask, "seconds": img.seconds,
-            "paths": int(img.mask.sum()) * spec.frame_spp * len(media), "truncated": img.truncated_fraction}
+    return shape, media, _camera(spec, rot), lights
+
+
+def noise_levels(spec: SceneSpec, radiance: np.ndarray, mask: np.ndarray) -> tuple[float, float, float]:
+    """(radiance_scale k, gain g in electrons per value, read noise r in value units) of the ``camera`` /
+    ``zeros`` classes (module docstring), from the frame's radiance."""
+    k = 0.6 / float(np.percentile(radiance[mask], 99))
+    gain = spec.gain_e_per_value
+    read = spec.read_noise_e / gain
+    if spec.noise == "zeros":
+        read = float(min(0.03, max(read, 2.0 * np.percentile(radiance[mask] * k, 2))))
+    return k, gain, read
+
+
+def camera_sd(values: np.ndarray, gain: float, read: float) -> np.ndarray:
+    """The camera's standard deviation at noise-free values v: sqrt(max(v, 0) / g + r^2) (value units)."""
+    return np.sqrt(np.maximum(values, 0.0) / gain + read * read)
+
+
+def mc_to_camera_sd(spec: SceneSpec, radiance: np.ndarray, stderr: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Per object pixel and channel: the frame's Monte Carlo standard error over the camera's standard deviation
+    (both in value units; the renderer's own per-pixel stderr, :class:`simulators.mc.render.MCImage`)."""
+    k, gain, read = noise_levels(spec, radiance, mask)
+    return (k * stderr[mask]) / camera_sd(k * radiance[mask], gain, read)
+
+
+def frame_spp_needed(spec: SceneSpec, radiance: np.ndarray, stderr: np.ndarray, mask: np.ndarray) -> int:
+    """The frame rule (module docstring): the spp at which the Monte Carlo sd is at most :data:`MC_SD_RATIO` of
+    the camera sd at :data:`MC_SD_QUANTILE` of the object's pixel-channels, from a pilot render at
+    ``spec.frame_spp`` (stderr ~ 1/sqrt(spp)); rounded up to a multiple of the pilot spp and capped at
+    :data:`MAX_SPP_FACTOR` [light] x the pilot. The pilot's spp for the ``mc`` class, and when ``spec.frame_rule`` is off."""
+    if spec.noise == "mc" or not spec.frame_rule:
+        return spec.frame_spp
+    ratio = mc_to_camera_sd(spec, radiance, stderr, mask)
+    q = float(np.quantile(ratio[np.isfinite(ratio)], MC_SD_QUANTILE))
+    factor = min(MAX_SPP_FACTOR[spec.light], max(1, math.ceil((q / MC_SD_RATIO) ** 2)))
+    return spec.frame_spp * factor
 
 
 def apply_noise(spec: SceneSpec, radiance: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, float, float]:
     """(image values, radiance_scale k, read noise in value units) for the scene's noise class (module docstring)."""
-    obj = radiance[mask]
     if spec.noise == "mc":
         return radiance.astype(np.float32), 1.0, 0.0
-    k = 0.6 / float(np.percentile(obj, 99))
+    k, gain, read = noise_levels(spec, radiance, mask)
     v = radiance * k
     rng = np.random.default_rng(spec.noise_seed)
-    gain = spec.gain_e_per_value
-    read = spec.read_noise_e / gain
-    if spec.noise == "zeros":
-        read = float(min(0.03, max(read, 2.0 * np.percentile(v[mask], 2))))
     raw = rng.poisson(np.maximum(v, 0) * gain) / gain + BLACK_LEVEL + rng.normal(0.0, read, v.shape)
     out = raw - BLACK_LEVEL
     if spec.noise == "zeros":
@@ -156,6 +232,13 @@ def apply_noise(spec: SceneSpec, radiance: np.ndarray, mask: np.ndarray) -> tupl
     if spec.image_format == "png16":
         out = np.round(np.clip(out, 0.0, 1.0) * 65535.0) / 65535.0
     return out.astype(np.float32), k, read
+
+
+def stated_stderr(values: np.ndarray, mc_sd_values: np.ndarray, gain: float, read: float) -> np.ndarray:
+    """The ``[noise] stderr_path`` image of a frame whose Monte Carlo noise is not negligible (value units):
+    sqrt(max(value, 0) / g + r^2 + mc_sd^2) — the camera part exactly as ``electrons_per_value`` + ``read_noise``
+    would state it from the observed values (docs/scene-file.md), plus the renderer's own standard error x k."""
+    return np.sqrt(np.maximum(values, 0.0) / gain + read * read + np.square(mc_sd_values)).astype(np.float32)
 
 
 def max_edge_mm(spec: SceneSpec) -> float:
@@ -172,7 +255,8 @@ def _file_vec(t: np.ndarray, x: Any) -> list[float]:
     return [round(float(v), 6) for v in t @ np.asarray(x, float)]
 
 
-def scene_doc(spec: SceneSpec, image_name: str, radiance_scale: float, read_value: float) -> dict[str, Any]:
+def scene_doc(spec: SceneSpec, image_name: str, radiance_scale: float, read_value: float,
+              stderr_name: str | None = None) -> dict[str, Any]:
     t = np.asarray(spec.world_rotation)
     doc: dict[str, Any] = {
         "version": 1, "name": spec.name,
@@ -187,7 +271,9 @@ def scene_doc(spec: SceneSpec, image_name: str, radiance_scale: float, read_valu
         doc["point_lights"] = [{"position_mm": _file_vec(t, p[:3]), "intensity": p[3]} for p in spec.point_lights]
     else:
         doc["environment"] = {"path": "sky.exr", "max_size": 64, **dict(spec.env_keys)}
-    if spec.noise_section:
+    if spec.noise_section and stderr_name is not None:
+        doc["noise"] = {"stderr_path": stderr_name}
+    elif spec.noise_section:
         doc["noise"] = {"electrons_per_value": spec.gain_e_per_value, "read_noise": read_value}
     return doc
 
@@ -222,9 +308,16 @@ def build_scene(spec: SceneSpec, root: Path) -> tuple[Path, dict[str, Any]]:
     values, k, read = apply_noise(spec, fr["radiance"], fr["mask"])
     image_name = "image.exr" if spec.image_format == "exr" else "image.png"
     (write_exr if spec.image_format == "exr" else write_png16)(folder / image_name, values)
+    ratio = None if spec.noise == "mc" else mc_to_camera_sd(spec, fr["radiance"], fr["stderr"], fr["mask"])
+    ratio = None if ratio is None else ratio[np.isfinite(ratio)]
+    rule_met = ratio is None or float(np.mean(ratio <= MC_SD_RATIO)) >= MC_SD_QUANTILE
+    stderr_name = None
+    if spec.noise_section and not rule_met:   # the frame still carries Monte Carlo noise: state all of it
+        stderr_name = "stderr.exr"
+        write_exr(folder / stderr_name, stated_stderr(values, k * fr["stderr"], spec.gain_e_per_value, read))
     if not spec.point_lights:
         write_exr(folder / "sky.exr", environment(spec)[0].astype(np.float32))
-    doc = scene_doc(spec, image_name, k, read)
+    doc = scene_doc(spec, image_name, k, read, stderr_name)
     atomic_write(folder / "scene.toml", lambda p: p.write_text(tomli_w.dumps(doc)))
     obj = fr["radiance"][fr["mask"]]
     vals = values[fr["mask"]]
@@ -232,7 +325,12 @@ def build_scene(spec: SceneSpec, root: Path) -> tuple[Path, dict[str, Any]]:
     meta = {"spec": spec.to_json(), "name": spec.name, "classes": sorted(spec.classes),
             "truth": {"sigma_s_prime_per_mm": spec.sigma_s_prime_per_mm.tolist(),
                       "sigma_a_per_mm": spec.sigma_a_per_mm.tolist()},
-            "frame_spp": spec.frame_spp, "render_seconds": seconds, "paths": fr["paths"],
+            "frame_spp": spec.frame_spp, "frame_spp_rendered": fr["spp"], "render_seconds": seconds,
+            "mc_over_camera_sd": None if ratio is None else
+            {"median": float(np.median(ratio)), "p95": float(np.quantile(ratio, MC_SD_QUANTILE)),
+             "fraction_within_rule": float(np.mean(ratio <= MC_SD_RATIO))},
+            "noise_stated": None if not spec.noise_section else
+            ("stderr image: camera + Monte Carlo" if stderr_name else "camera: electrons_per_value + read_noise"), "paths": fr["paths"],
             "truncated_fraction": fr["truncated"], "object_pixels": int(fr["mask"].sum()),
             "radiance_scale": k, "gain_e_per_value": spec.gain_e_per_value if spec.noise != "mc" else None,
             "read_noise_value": read if spec.noise != "mc" else None, "max_edge_mm": doc["mesh"]["max_edge_mm"],
