@@ -131,32 +131,10 @@ def _modulated_spectra(spectra: Array, wins: NDArray[np.int64], Mu: Array, inv: 
 
 
 @njit(cache=True)
-def _window_cost(pred: Array, pw: int, data: Array, jobs: NDArray[np.int64], win: Array) -> Array:
-    """sum_c sum_px (win (data[jobs[p], c] - (q - mean q)))^2 with q = pred[p, c, :, pw:pw + w]."""
-    P, C, h, _ = pred.shape
-    w = data.shape[3]
-    out = np.zeros(P)
-    for p in range(P):
-        jd = jobs[p]
-        tot = 0.0
-        for c in range(C):
-            mean = 0.0
-            for i in range(h):
-                for j in range(w):
-                    mean += pred[p, c, i, pw + j]
-            mean /= h * w
-            for i in range(h):
-                for j in range(w):
-                    r = win[i, j] * (data[jd, c, i, j] - (pred[p, c, i, pw + j] - mean))
-                    tot += r * r
-        out[p] = tot
-    return out
-
-
-@njit(cache=True)
 def _window_cost_weighted(pred: Array, pw: int, data: Array, jobs: NDArray[np.int64], w2: Array) -> Array:
-    """:func:`_window_cost` with a squared weight per job and pixel: sum_c sum_px w2[jobs[p]] (data - (q - mean q))^2
-    (the mean of q over the window, unweighted, as in the unweighted cost)."""
+    """The windowed cost with a squared weight per job and pixel: sum_c sum_px w2[jobs[p]] (data - (q - mean q))^2
+    (the mean of q over the window, unweighted; without per-pixel weights w2 is the window's squared taper for
+    every job)."""
     P, C, h, _ = pred.shape
     w = data.shape[3]
     out = np.zeros(P)
@@ -222,6 +200,8 @@ def search_l_prime(spectra: Array, data: Array, alphas: Array, pixel_mm: float, 
         if iv.shape != (n, h, w):
             raise ValueError(f"job_inv_var must have shape {(n, h, w)}, got {iv.shape}")
         w2 = np.ascontiguousarray(np.where(np.isfinite(iv) & (iv > 0), iv, 0.0) * (win * win)[None])
+    # the cost's squared weights: the stated noise's, else the taper's for every job (a view, no copy)
+    cost_w2 = w2 if w2 is not None else np.broadcast_to(win * win, (n, h, w))
     per_pair = 2 * H2 * W2 * 8 * 4
     block = max(1, int(block_bytes) // per_pair)
     cost = np.full((n, nl), np.nan)
@@ -238,8 +218,7 @@ def search_l_prime(spectra: Array, data: Array, alphas: Array, pixel_mm: float, 
             Z = _modulated_spectra(spectra, jw[jb], Mu, inv)                           # (P, 2, H2, W2r)
             Z = sfft.ifft(Z, axis=-2, overwrite_x=True, workers=workers)[..., ph:ph + h, :]
             pred = sfft.irfft(Z, n=W2, axis=-1, workers=workers)                   # (P, 2, h, W2)
-            cost[jb, lb] = (_window_cost(pred, pw, data, jb, win) if w2 is None
-                            else _window_cost_weighted(pred, pw, data, jb, w2))
+            cost[jb, lb] = _window_cost_weighted(pred, pw, data, jb, cost_w2)
 
     rows = np.arange(n)
     grid = np.arange(nl)

@@ -51,8 +51,40 @@ def render_with(fn: Callable[..., Any] | None) -> Iterator[None]:
         _RENDER.reset(token)
 
 
+class _SampleCountLevels:
+    """The sample-count levels both references share (issue 19: render at ``spp_levels[level]``, the loops move up
+    a level when the cheaper one's noise is too large). Needs the attributes ``spp``, ``spp_levels``, ``level``."""
+
+    spp: int
+    spp_levels: tuple[int, ...]
+    level: int
+
+    def _check_levels(self) -> None:
+        levels = tuple(int(x) for x in self.spp_levels)
+        if levels and (min(levels) < 2 or list(levels) != sorted(set(levels)) or levels[-1] != int(self.spp)):
+            raise ValueError(f"spp_levels must be strictly ascending sample counts >= 2 ending at spp = {self.spp}; "
+                             f"got {list(self.spp_levels)}")
+        self.spp_levels = levels
+
+    @property
+    def n_levels(self) -> int:
+        """Number of sample-count levels (1 without ``spp_levels``)."""
+        return max(1, len(self.spp_levels))
+
+    def set_level(self, level: int) -> None:
+        """Render at ``spp_levels[level]`` from now on (0: the cheapest; ``n_levels - 1``: ``spp``)."""
+        if not 0 <= int(level) < self.n_levels:
+            raise ValueError(f"level must lie in [0, {self.n_levels - 1}]; got {level}")
+        self.level = int(level)
+
+    @property
+    def current_spp(self) -> int:
+        """The sample count of the next render."""
+        return self.spp_levels[self.level] if self.spp_levels else int(self.spp)
+
+
 @dataclass
-class MonteCarloReference:
+class MonteCarloReference(_SampleCountLevels):
     """``reference(sigma_s', sigma_a, eta, seed) -> (radiance (K, C), stderr (K, C))`` over all patches.
 
     ``shape``: a :mod:`simulators.mc` shape (Box, Sphere, Slab, Mesh, ...) in the rig frame (mm); ``camera``:
@@ -84,31 +116,11 @@ class MonteCarloReference:
     def __post_init__(self) -> None:
         if self.spp < 2:
             raise ValueError("spp must be >= 2 (the correction needs a standard error)")
-        levels = tuple(int(x) for x in self.spp_levels)
-        if levels and (min(levels) < 2 or list(levels) != sorted(set(levels)) or levels[-1] != int(self.spp)):
-            raise ValueError(f"spp_levels must be strictly ascending sample counts >= 2 ending at spp = {self.spp}; "
-                             f"got {list(self.spp_levels)}")
-        self.spp_levels = levels
+        self._check_levels()
         if self.valid_px is not None:
             want = (self.camera.height_px, self.camera.width_px)
             if np.shape(self.valid_px) != want:
                 raise ValueError(f"valid_px has shape {np.shape(self.valid_px)}; expected the camera's {want}")
-
-    @property
-    def n_levels(self) -> int:
-        """Number of sample-count levels (1 without ``spp_levels``)."""
-        return max(1, len(self.spp_levels))
-
-    def set_level(self, level: int) -> None:
-        """Render at ``spp_levels[level]`` from now on (0: the cheapest; ``n_levels - 1``: ``spp``)."""
-        if not 0 <= int(level) < self.n_levels:
-            raise ValueError(f"level must lie in [0, {self.n_levels - 1}]; got {level}")
-        self.level = int(level)
-
-    @property
-    def current_spp(self) -> int:
-        """The sample count of the next render."""
-        return self.spp_levels[self.level] if self.spp_levels else int(self.spp)
 
     def __call__(self, sigma_s_prime_per_mm: Any, sigma_a_per_mm: Any, eta: float, seed: int
                  ) -> tuple[NDArray[np.float64], ...]:
@@ -145,7 +157,7 @@ class MonteCarloReference:
 
 
 @dataclass
-class GradientsMonteCarloReference:
+class GradientsMonteCarloReference(_SampleCountLevels):
     """``reference(sigma_s', sigma_a, eta, seed) -> SphereObservables`` of a gradient capture of a known sphere.
 
     Renders the capture by Monte Carlo — a :class:`simulators.scene.SphereObject` of ``radius_mm`` at
@@ -185,11 +197,7 @@ class GradientsMonteCarloReference:
     def __post_init__(self) -> None:
         if self.spp < 2:
             raise ValueError("spp must be >= 2 (the Monte Carlo standard error needs two paths per pixel)")
-        levels = tuple(int(x) for x in self.spp_levels)
-        if levels and (min(levels) < 2 or list(levels) != sorted(set(levels)) or levels[-1] != int(self.spp)):
-            raise ValueError(f"spp_levels must be strictly ascending sample counts >= 2 ending at spp = {self.spp}; "
-                             f"got {list(self.spp_levels)}")
-        self.spp_levels = levels
+        self._check_levels()
         if self.render_mode not in ("mc", "fast"):
             raise ValueError(f"render_mode must be 'mc' or 'fast'; got {self.render_mode!r}")
         if not self.radius_mm > 0:
@@ -200,22 +208,6 @@ class GradientsMonteCarloReference:
             raise ValueError("maps_fn must be a callable capture -> GradientMaps")
         if self.erode_px < 0:
             raise ValueError("erode_px must be >= 0")
-
-    @property
-    def n_levels(self) -> int:
-        """Number of sample-count levels (1 without ``spp_levels``)."""
-        return max(1, len(self.spp_levels))
-
-    def set_level(self, level: int) -> None:
-        """Render at ``spp_levels[level]`` from now on (0: the cheapest; ``n_levels - 1``: ``spp``)."""
-        if not 0 <= int(level) < self.n_levels:
-            raise ValueError(f"level must lie in [0, {self.n_levels - 1}]; got {level}")
-        self.level = int(level)
-
-    @property
-    def current_spp(self) -> int:
-        """The sample count of the next render."""
-        return self.spp_levels[self.level] if self.spp_levels else int(self.spp)
 
     def estimate(self, capture: Any) -> SphereEstimate:
         """The sphere estimate of a capture (observed or rendered): maps_fn, then estimate_sphere."""
