@@ -8,35 +8,25 @@ diffuse normals match the scatter over 32 noise realizations to 0-8 % (2000 e-/v
 """
 from __future__ import annotations
 
-import tomllib
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from estimation.gradients import LedRig, albedo_scale_from_radiometry, build_response_lut, compute_maps
+from estimation.gradients import build_response_lut, compute_maps
 from estimation.gradients.uncertainty import propagate_frame_noise, shot_read_stderr
 from estimation.relief import fit_relief_windows, parameters_from_l_prime
-from rig.files.imageio import read_image
 
-DATA = Path(__file__).resolve().parents[1] / "data" / "relief_skin1"
-ETA = 1.3
-SSP, SA = np.array([0.74, 0.88, 1.01]), np.array([0.032, 0.17, 0.48])
+from _relief_skin1 import ETA, SA, SSP, load_relief_skin1  # tests/estimation/_relief_skin1.py
+
 TRUTH = parameters_from_l_prime(SSP / (SSP + SA), 1 / (SSP + SA))
 GAIN = 5000.0           # electrons per frame value: full-on signal ~0.1-0.36 -> 450-1800 e-
 
 
 @pytest.fixture(scope="module")
 def rig_maps():
-    cfg = tomllib.loads((DATA / "capture.toml").read_text())
-    frames = {(f["pattern"], f["polarization"]): read_image(DATA / f["file"])[0] for f in cfg["frames"]}
-    leds = np.load(DATA / "leds.npy")
-    rig = LedRig.from_positions(leds[:, :3], leds[:, 3:])
-    v = cfg["radiometry"]["value_per_radiance_per_s"] * cfg["frames"][0]["exposure_s"]
-    scale = albedo_scale_from_radiometry([v] * 3, rig, eta=ETA)
+    cap = load_relief_skin1()
+    frames, rig, scale, tn, view = cap["frames"], cap["rig"], cap["scale"], cap["true_normals"], cap["view"]
     lut = build_response_lut(rig, eta=ETA)
-    tn = np.load(DATA / "true_normals.npy").astype(float)
-    view = np.broadcast_to([0.0, -1.0, 0.0], tn.shape).astype(np.float32)
 
     def maps_fn(fb, rows):
         return compute_maps(fb, albedo_scale=scale, leds=rig, eta=ETA, lut=lut, view_dirs=view[rows])

@@ -6,34 +6,22 @@ tests/rig/test_folder_diffusion.py) reduced by compute_maps here, with its true 
 """
 from __future__ import annotations
 
-import tomllib
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from estimation.gradients import LedRig, albedo_scale_from_radiometry, compute_maps
+from estimation.gradients import compute_maps
 from estimation.relief import (fit_relief_windows, normal_noise_rad, normals_from_height, parameters_from_l_prime,
                                summarize_relief)
-from rig.files.imageio import read_image
 
-DATA = Path(__file__).resolve().parents[1] / "data" / "relief_skin1"
-ETA = 1.3
-SSP, SA = np.array([0.74, 0.88, 1.01]), np.array([0.032, 0.17, 0.48])
+from _relief_skin1 import ETA, SA, SSP, load_relief_skin1  # tests/estimation/_relief_skin1.py
 
 
 @pytest.fixture(scope="module")
 def mc_maps():
-    cfg = tomllib.loads((DATA / "capture.toml").read_text())
-    frames = {(f["pattern"], f["polarization"]): read_image(DATA / f["file"])[0] for f in cfg["frames"]}
-    leds = np.load(DATA / "leds.npy")
-    rig = LedRig.from_positions(leds[:, :3], leds[:, 3:])
-    v = cfg["radiometry"]["value_per_radiance_per_s"] * cfg["frames"][0]["exposure_s"]
-    scale = albedo_scale_from_radiometry([v] * 3, rig, eta=ETA)
-    true_n = np.load(DATA / "true_normals.npy").astype(float)
-    maps = compute_maps(frames, albedo_scale=scale, leds=rig, eta=ETA,
-                        view_dirs=np.broadcast_to([0.0, -1.0, 0.0], true_n.shape).astype(np.float32))
-    return maps, true_n
+    cap = load_relief_skin1()
+    maps = compute_maps(cap["frames"], albedo_scale=cap["scale"], leds=cap["rig"], eta=ETA, view_dirs=cap["view"])
+    return maps, cap["true_normals"]
 
 
 def test_mc_relief_fit_covers_the_truth(mc_maps) -> None:
