@@ -55,9 +55,7 @@ def read_mesh_normals(t: Any, folder: Path, shape: tuple[int, int], camera: Any)
     """``[object] mesh_file`` (+ ``mesh_units``, ``mesh_translation_mm``) of the table ``t`` rendered into
     ``camera``: (normals (H, W, 3), the file). Errors name the file and key (unreadable, not one triangle mesh,
     no pixel of the frames sees it)."""
-    import trimesh
-
-    from rig.files.scene_spec import MESH_SUFFIXES, MESH_UNITS_MM
+    from rig.files.scene_spec import MESH_SUFFIXES, MESH_UNITS_MM, MeshFileError, load_triangle_mesh
 
     p = t.path("mesh_file", folder, "mesh (" + ", ".join(MESH_SUFFIXES) + ")")
     if p.suffix.lower() not in MESH_SUFFIXES:
@@ -65,17 +63,9 @@ def read_mesh_normals(t: Any, folder: Path, shape: tuple[int, int], camera: Any)
     units = t.str("mesh_units", "mm", choices=tuple(MESH_UNITS_MM))
     shift = t.vec("mesh_translation_mm", 3, [0.0, 0.0, 0.0])
     try:
-        loaded = trimesh.load(str(p))
-    except Exception as exc:        # trimesh raises assorted exceptions on bad files
-        raise t.err("mesh_file", f"a readable triangle mesh ({exc})", p.name) from None
-    if isinstance(loaded, trimesh.Scene):
-        geoms = [g for g in loaded.geometry.values() if isinstance(g, trimesh.Trimesh)]
-        if len(geoms) != 1:
-            raise t.err("mesh_file", "a single triangle mesh", f"{p.name}: {len(loaded.geometry)} geometries")
-        loaded = geoms[0]
-    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0 or not np.isfinite(loaded.vertices).all():
-        raise t.err("mesh_file", "a triangle mesh with faces and finite vertices", p.name)
-    mesh = loaded.copy()
+        mesh = load_triangle_mesh(p)
+    except MeshFileError as exc:
+        raise t.err("mesh_file", exc.expected, exc.found) from None
     mesh.apply_scale(MESH_UNITS_MM[units])
     mesh.apply_translation(shift)
     normals, _ = mesh_normals_in_camera(mesh, camera)

@@ -27,7 +27,8 @@ from rig.files.imageio import ImageFileError, RAW_SUFFIXES, read_image
 from rig.files.provenance import sha256_file
 from rig.files.scene_spec import (_AXES, ENV_SUFFIXES, INTEGER_SATURATION, MASK_SUFFIXES, MESH_SUFFIXES, MESH_UNITS_MM,
                          METHODS, MODELS, SCENE_FORMAT_VERSION, Array, CameraSpec, DirectionalLightSpec,
-                         EnvironmentSpec, EstimationSpec, ImageSpec, MaterialSpec, MeshSpec, NoiseSpec,
+                         EnvironmentSpec, EstimationSpec, ImageSpec, MaterialSpec, MeshFileError, MeshSpec, NoiseSpec,
+                         load_triangle_mesh,
                          PointLightSpec, Scene, SceneFileError, Vec3, _max_normalized_radius, patches_error)
 
 __all__ = ["load_scene", "parse_scene"]
@@ -132,8 +133,6 @@ class _SceneReader(_Reader):
 
 # ---------------------------------------------------------------------------------------------- sections
 def _read_mesh(r: _SceneReader, base: Path) -> tuple[MeshSpec, Any]:
-    import trimesh
-
     r.only(("path", "units", "translation_mm", "max_edge_mm"))
     path = r.path("path", base, MESH_SUFFIXES, "a mesh file (PLY, OBJ or STL)")
     assert path is not None
@@ -141,21 +140,9 @@ def _read_mesh(r: _SceneReader, base: Path) -> tuple[MeshSpec, Any]:
     translation = r.vec3("translation_mm", (0.0, 0.0, 0.0))
     max_edge = r.opt_num("max_edge_mm", positive=True)
     try:
-        loaded = trimesh.load(str(path))
-    except Exception as exc:  # trimesh raises assorted exceptions on bad files
-        raise r.fail("path", f"a readable triangle mesh; {path}: {exc}", path.name) from None
-    if isinstance(loaded, trimesh.Scene):
-        geoms = [g for g in loaded.geometry.values() if isinstance(g, trimesh.Trimesh)]
-        if len(geoms) != 1 or len(loaded.geometry) != 1:
-            raise r.fail("path", f"a single triangle mesh; {path} holds {len(loaded.geometry)} geometries "
-                         "(merge them into one object or export one)", path.name)
-        loaded = loaded.to_geometry()
-    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
-        raise r.fail("path", f"a triangle mesh with faces; {path} holds a {type(loaded).__name__} "
-                     f"({len(getattr(loaded, 'faces', []))} faces)", path.name)
-    mesh = loaded.copy()
-    if not np.all(np.isfinite(mesh.vertices)):
-        raise r.fail("path", f"finite vertex coordinates; {path} has NaN/inf vertices", path.name)
+        mesh = load_triangle_mesh(path)
+    except MeshFileError as exc:
+        raise r.fail("path", f"{exc.expected}; {exc.found}", path.name) from None
     notes: list[str] = []
     mm = MESH_UNITS_MM[units]
     mesh.apply_scale(mm)

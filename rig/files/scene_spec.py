@@ -23,6 +23,39 @@ RESULT_FORMAT = "sssrig-single-image-estimate"
 #: millimetres per mesh unit
 MESH_UNITS_MM: dict[str, float] = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4}
 MESH_SUFFIXES = (".ply", ".obj", ".stl")
+
+
+class MeshFileError(ValueError):
+    """A mesh file that is not one readable triangle mesh: ``expected`` (what was wanted), ``found`` (what the file
+    holds); the caller names its file and key."""
+
+    def __init__(self, expected: str, found: str) -> None:
+        super().__init__(f"expected {expected}; found {found}")
+        self.expected, self.found = expected, found
+
+
+def load_triangle_mesh(path: Path) -> Any:
+    """One ``trimesh.Trimesh`` (a copy) with faces and finite vertices from a PLY / OBJ / STL file (a scene holding
+    exactly one geometry is unwrapped); else :class:`MeshFileError`. The one mesh reader of scene files
+    (``[object] path``) and capture folders (``[object] mesh_file``)."""
+    import trimesh
+
+    try:
+        loaded = trimesh.load(str(path))
+    except Exception as exc:  # trimesh raises assorted exceptions on bad files
+        raise MeshFileError("a readable triangle mesh", f"{path}: {exc}") from None
+    if isinstance(loaded, trimesh.Scene):
+        geoms = [g for g in loaded.geometry.values() if isinstance(g, trimesh.Trimesh)]
+        if len(geoms) != 1 or len(loaded.geometry) != 1:
+            raise MeshFileError("a single triangle mesh", f"{path} holds {len(loaded.geometry)} geometries (merge "
+                                "them into one object or export one)")
+        loaded = loaded.to_geometry()
+    if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
+        raise MeshFileError("a triangle mesh with faces", f"{path} holds a {type(loaded).__name__} "
+                            f"({len(getattr(loaded, 'faces', []))} faces)")
+    if not np.all(np.isfinite(loaded.vertices)):
+        raise MeshFileError("finite vertex coordinates", f"{path} has NaN/inf vertices")
+    return loaded.copy()
 MASK_SUFFIXES = (".png", ".tif", ".tiff", ".bmp", ".exr")
 ENV_SUFFIXES = (".exr", ".hdr", ".tif", ".tiff", ".png")
 METHODS = ("direct", "tikhonov", "pinv")
