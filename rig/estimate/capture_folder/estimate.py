@@ -224,12 +224,13 @@ def _estimate_capture(capture: Capture, out_dir: str | Path, fmt: str, tile_rows
 
     def folder_maps(images: Mapping[FrameKey, Any], out: Path | None = None) -> Any:
         """The folder's map computation (also applied to the reference renders, converted to frame units). The LED
-        response LUT depends only on the LEDs, eta and the surface model: built once per capture (compute_maps'
-        defaults), not once per reference render."""
+        response LUT depends only on the LEDs, eta and the surface model: built once per LED layout (compute_maps'
+        defaults; kept in the process and on disk, keyed by content: :mod:`rig.estimate.response_cache`), not once
+        per capture or reference render."""
         if not cap.leds.ideal and "lut" not in lut_memo:
-            from estimation.gradients import build_response_lut
-            lut_memo["lut"] = build_response_lut(leds, eta=rad.eta, reference_normal=n_ref, surface_center_mm=center,
-                                                 surface_radius_mm=radius)
+            from rig.estimate.response_cache import response_lut
+            lut_memo["lut"] = response_lut(leds, eta=rad.eta, reference_normal=n_ref, surface_center_mm=center,
+                                           surface_radius_mm=radius)
         return compute_maps(images, albedo_scale=scale, leds=leds, ideal=cap.leds.ideal, eta=rad.eta,
                             lut=lut_memo.get("lut"),
                             view_dirs=view, tile_rows=tile_rows or 256, white_level=1.0,
