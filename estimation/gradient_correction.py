@@ -73,6 +73,9 @@ from .sphere_scan import needs_scan, scan_start
 
 #: with a reference of several sample-count levels: at most this many renders per level below the top
 MAX_LOW_LEVEL_RENDERS: int = 2
+#: Broyden's secant between two renders of different sample-count levels (different Monte Carlo realisations: the
+#: difference of their defects carries the cheaper level's noise, not only the defect's slope)
+SECANT_ACROSS_LEVELS: bool = True
 
 __all__ = ["SphereObservables", "SphereReference", "SphereReferenceStep", "SphereReferenceEstimate",
            "sphere_model_observables", "estimate_sphere_with_reference"]
@@ -372,8 +375,10 @@ def estimate_sphere_with_reference(observed: SphereObservables | DiffusionSummar
         reference.set_level(0)
     low_renders = full_renders = 0
     it = 0
+    level_prev = level
     while full_renders < max_iterations:
         it += 1
+        lev_now = level
         at_top = level == n_levels - 1
         if at_top:
             full_renders += 1
@@ -421,7 +426,7 @@ def estimate_sphere_with_reference(observed: SphereObservables | DiffusionSummar
             # u_fast(x) + d_i + K (x - x_i) = u_obs with the fast model's exact nonlinearity
             dx, dd = x - x_prev, d - d_prev
             nrm = np.einsum("ck,ck->c", dx, dx)
-            upd = use & (nrm > 1e-8)
+            upd = use & (nrm > 1e-8) & (SECANT_ACROSS_LEVELS or level_prev == lev_now)
             corr = (dd - np.einsum("cij,cj->ci", K, dx)) / np.where(upd, nrm, 1.0)[:, None]
             K = K + np.where(upd[:, None, None], corr[:, :, None] * dx[:, None, :], 0.0)
             # a secant that flips the orientation of the map or makes it nearly singular is Monte Carlo noise,
@@ -468,6 +473,7 @@ def estimate_sphere_with_reference(observed: SphereObservables | DiffusionSummar
             low_renders = 0
             reference.set_level(level)
         x_prev, d_prev, x = x, d, x_new
+        level_prev = lev_now
     p_new = np.exp(x_new)
     ssp_f = np.where(ok, p_new[:, 0], np.nan)
     sa_f = np.where(ok, np.where(cens, 0.0, p_new[:, 1]), np.nan)

@@ -107,6 +107,17 @@ class FolderSphereReference(GradientsMonteCarloReference):
     tile_rows: int = 256
     #: the summary's observables only (albedo, shortening: all the correction reads), not its parameter inversions
     observables_only: bool = False
+    #: render only the summary's pixels (``region`` eroded by ``erode_px``; the maps and the summary are per pixel, so
+    #: the observables are bit-identical to those of a whole-frame render: issue 19)
+    render_region_only: bool = False
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.render_region_only and self.region is not None and self.render_mask is None:
+            from scipy import ndimage
+
+            reg = np.asarray(self.region, dtype=bool)
+            self.render_mask = ndimage.binary_erosion(reg, iterations=int(self.erode_px)) if self.erode_px else reg
 
     def estimate_maps(self, maps: GradientMaps) -> SphereEstimate:
         """The sphere summary of maps (observed or rendered): exact sphere method, the folder's region."""
@@ -177,7 +188,8 @@ def reference_corrected_sphere(*, camera: PinholeCamera | OrthographicCamera, le
                                 spp_levels=tuple(sorted({min(int(spp), max(REFERENCE_MIN_SPP, int(spp) // k))
                                                          for k in REFERENCE_SPP_LEVEL_DIVISORS}))
                                 if reference_mode == "adaptive" and render_mode == "mc" else (),
-                                observables_only=reference_mode == "adaptive")
+                                observables_only=reference_mode == "adaptive",
+                                render_region_only=reference_mode == "adaptive")
     observed = SphereObservables.from_summary(ref.estimate_maps(observed_maps).summary)
     res = estimate_sphere_with_reference(observed, ref, float(radius_mm), float(eta), seed=int(seed),
                                          max_iterations=int(iterations), rel_tol=REFERENCE_REL_TOL)
@@ -212,6 +224,8 @@ def reference_corrected_sphere(*, camera: PinholeCamera | OrthographicCamera, le
                       "patterns": sorted(drives), "polarizations": list(pols),
                       "value_per_radiance_per_s": V.tolist(), "render_exposure_s": k_render,
                       "region_px": int(np.count_nonzero(region)),
+                      "rendered_px": int(region.size) if ref.render_mask is None
+                      else int(np.count_nonzero(ref.render_mask)),
                       "render_seconds": [r["render_seconds"] for r in ref.renders],
                       "limits": "LEDs rendered as a distant map centred on the sphere (no near field); "
                                 "the sphere is taken as exactly known (center_mm, radius_mm, eta)"},

@@ -33,7 +33,7 @@ from estimation.single_image import Patches
 
 from rig.estimate.pixel_map import sample_at_points
 
-__all__ = ["MonteCarloReference", "GradientsMonteCarloReference", "render_with"]
+__all__ = ["MonteCarloReference", "GradientsMonteCarloReference", "PixelSubsetCamera", "render_with"]
 
 #: the render function :class:`MonteCarloReference` calls (None: :func:`simulators.mc.render`); set by
 #: :func:`render_with`, e.g. by ``rig.estimate.batch`` to split each render into row chunks across Dask workers
@@ -112,6 +112,9 @@ class MonteCarloReference(_SampleCountLevels):
     #: one whose noise matches the fit's
     spp_levels: tuple[int, ...] = ()
     level: int = -1   # index into spp_levels (-1: the last, the full count)
+    #: (H, W) pixels to render by Monte Carlo (None: the whole frame); the others stay dark
+    #: (:class:`PixelSubsetCamera`): only for reductions that read no other pixel
+    render_mask: NDArray[np.bool_] | None = None
 
     def __post_init__(self) -> None:
         if self.spp < 2:
@@ -156,6 +159,29 @@ class MonteCarloReference(_SampleCountLevels):
         return obs, sig, d, d_se
 
 
+class PixelSubsetCamera:
+    """``camera`` with only the pixels of ``mask`` (H, W) looking at the scene: the other pixels' rays are reversed
+    (pointing away from everything in front of the camera), so a renderer finds no object there and spends ~nothing
+    on them. :func:`simulators.mc.render` seeds each pixel's random stream by its index in the frame, so every pixel
+    of ``mask`` is rendered bit-identically to a render of the whole frame (issue 19: render only the pixels the
+    sphere summary reads). Every other attribute is the wrapped camera's."""
+
+    def __init__(self, camera: Any, mask: NDArray[np.bool_]) -> None:
+        m = np.asarray(mask, dtype=bool)
+        if m.shape != (int(camera.height_px), int(camera.width_px)):
+            raise ValueError(f"mask must be (height_px, width_px) = {(camera.height_px, camera.width_px)}; got "
+                             f"{m.shape}")
+        self.camera, self.mask = camera, m
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.__dict__["camera"], name)
+
+    def pixel_rays(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        origins, dirs = self.camera.pixel_rays()
+        keep = self.mask.reshape(np.shape(dirs)[:-1] + (1,))
+        return origins, np.where(keep, dirs, -np.asarray(dirs))
+
+
 @dataclass
 class GradientsMonteCarloReference(_SampleCountLevels):
     """``reference(sigma_s', sigma_a, eta, seed) -> SphereObservables`` of a gradient capture of a known sphere.
@@ -193,6 +219,9 @@ class GradientsMonteCarloReference(_SampleCountLevels):
     #: (:func:`estimation.gradient_correction.estimate_sphere_with_reference`) starts at the cheapest level
     spp_levels: tuple[int, ...] = ()
     level: int = -1   # index into spp_levels (-1: the last, the full count)
+    #: (H, W) pixels to render by Monte Carlo (None: the whole frame); the others stay dark
+    #: (:class:`PixelSubsetCamera`): only for reductions that read no other pixel
+    render_mask: NDArray[np.bool_] | None = None
 
     def __post_init__(self) -> None:
         if self.spp < 2:
@@ -243,7 +272,9 @@ class GradientsMonteCarloReference(_SampleCountLevels):
         obj = SphereObject(tuple(float(c) for c in self.center_mm), float(self.radius_mm),
                            (float(ssp[0]), float(ssp[1]), float(ssp[2])), (float(sa[0]), float(sa[1]), float(sa[2])),
                            float(eta), tessellation=int(self.tessellation))
-        return render_gradient_capture(obj, self.camera, self.led_positions_mm, self.led_intensity, self.patterns,
+        camera = (self.camera if self.render_mask is None or self.render_mode != "mc"
+                  else PixelSubsetCamera(self.camera, self.render_mask))
+        return render_gradient_capture(obj, camera, self.led_positions_mm, self.led_intensity, self.patterns,
                                        polarizations=self.polarizations, exposure_s=self.exposure_s,
                                        sensor=self.sensor, noise=False, render_mode=self.render_mode, mc=settings)
 
