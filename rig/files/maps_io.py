@@ -36,7 +36,6 @@ from typing import Any, Mapping
 import numpy as np
 from numpy.typing import NDArray
 
-from drivers.atomic import atomic_write
 from drivers.errors import RigError
 from estimation.diffusion import DiffusionMaps, SeedEstimate
 from estimation.gradients import DerivedMap, GradientMaps
@@ -310,54 +309,17 @@ def _scalar_ranges(rows: list[list[dict[str, Any]]]) -> dict[str, tuple[float, f
     return out
 
 
-def _preview_matplotlib(path: Path, rows: list[list[dict[str, Any]]], title: str) -> None:
-    from matplotlib import colormaps
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    h_px, w_px = preview_size_px(len(rows))
-    fig = Figure(figsize=(w_px / _DPI, h_px / _DPI), dpi=_DPI)
-    FigureCanvasAgg(fig)
-    fig.suptitle(title, fontsize=8, y=1 - 6 / h_px, va="top")
-    fig.subplots_adjust(left=0.02, right=0.95, top=1 - 34 / h_px, bottom=18 / h_px, wspace=0.25, hspace=0.18)
-    cmap = colormaps["viridis"].with_extremes(bad=(0.5, 0.5, 0.5))
-    ranges = _scalar_ranges(rows)
-    n_rows = len(rows)
-    for r, row in enumerate(rows):
-        for c, t in enumerate(row):
-            ax = fig.add_subplot(n_rows, PREVIEW_COLUMNS, r * PREVIEW_COLUMNS + c + 1)
-            ax.set_xticks([])
-            ax.set_yticks([])
-            if t["data"] is None:
-                ax.set_facecolor((0.5, 0.5, 0.5))
-                ax.set_title(f"{t['title']}: not measured", fontsize=7)
-                continue
-            if t["kind"] == "scalar":
-                lo, hi = ranges[t["group"]]
-                im = ax.imshow(np.ma.masked_invalid(t["data"]), cmap=cmap, vmin=lo, vmax=hi,
-                               interpolation="nearest")
-                cb = fig.colorbar(im, ax=ax, fraction=0.046, pad=0.03)
-                cb.ax.tick_params(labelsize=6)
-                cb.set_label(t["unit"], fontsize=6)
-                ax.set_title(f"{t['title']} [{t['unit']}]", fontsize=7)
-            else:
-                rgb, note = _display_rgb(t)
-                ax.imshow(rgb, interpolation="nearest")
-                ax.set_title(f"{t['title']} ({note})", fontsize=7)
-    fig.text(0.01, 0.005, "grey = unknown (NaN)", fontsize=6)
-    atomic_write(path, lambda tmp: fig.savefig(str(tmp), format="png", dpi=_DPI))
-
-
-def _preview_opencv(path: Path, rows: list[list[dict[str, Any]]], title: str) -> None:
-    """numpy + OpenCV fallback (no matplotlib): same grid, labels and a colour bar strip per scalar tile."""
+def _compose_sheet(rows: list[list[dict[str, Any]]]) -> tuple[NDArray[np.uint8], list[tuple[int, int, str, float]]]:
+    """The preview sheet's pixels (h, w, 3) uint8 — tiles in a grid, scalars in viridis with a colour strip per
+    tile, unknown grey — and its labels as (x_px, baseline_px, text, size) for either text renderer."""
     import cv2
 
     tw, th = PREVIEW_TILE_PX
     h_px, w_px = preview_size_px(len(rows))
     sheet = np.full((h_px, w_px, 3), 255, np.uint8)
     ranges = _scalar_ranges(rows)
-    font = cv2.FONT_HERSHEY_SIMPLEX
     band, bar = 22, 26
+    texts: list[tuple[int, int, str, float]] = []
     for r, row in enumerate(rows):
         for c, t in enumerate(row):
             y0, x0 = r * th, c * tw
@@ -379,7 +341,7 @@ def _preview_opencv(path: Path, rows: list[list[dict[str, Any]]], title: str) ->
                     strip = cv2.applyColorMap(ramp, cv2.COLORMAP_VIRIDIS)[..., ::-1]
                     tile[th - bar + 2:th - bar + 10, 40:tw - 40] = strip
                     for txt, xx in ((f"{lo:.3g}", 2), (f"{hi:.3g}", tw - 78)):
-                        cv2.putText(tile, txt, (xx, th - 4), font, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
+                        texts.append((x0 + xx, y0 + th - 4, txt, 0.35))
                 else:
                     rgb, note = _display_rgb(t)
                     img = np.round(rgb * 255).astype(np.uint8)
@@ -390,7 +352,36 @@ def _preview_opencv(path: Path, rows: list[list[dict[str, Any]]], title: str) ->
                 img = cv2.resize(np.ascontiguousarray(img), (nw, nh), interpolation=cv2.INTER_NEAREST)
                 oy, ox = band + (area_h - nh) // 2, (tw - nw) // 2
                 tile[oy:oy + nh, ox:ox + nw] = img
-            cv2.putText(tile, label[:48], (4, 15), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+            texts.append((x0 + 4, y0 + 15, label[:48], 0.4))
+    return sheet, texts
+
+
+def _preview_matplotlib(path: Path, rows: list[list[dict[str, Any]]], title: str) -> None:
+    """The sheet of :func:`_compose_sheet` as one figure image with matplotlib's text (issue 19: one image and a few
+    text artists instead of an Axes and a colour bar per tile: measured 1.2 -> ~0.1 CPU s per capture)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    sheet, texts = _compose_sheet(rows)
+    h_px, w_px = sheet.shape[:2]
+    fig = Figure(figsize=(w_px / _DPI, h_px / _DPI), dpi=_DPI)
+    fig.patch.set_alpha(0.0)
+    canvas = FigureCanvasAgg(fig)
+    for x, y, txt, size in texts:
+        fig.text(x / w_px, 1.0 - y / h_px, txt, fontsize=7 if size >= 0.4 else 6, va="baseline", ha="left")
+    canvas.draw()       # the text alone (transparent elsewhere), laid over the sheet: black ink with its coverage
+    ink = np.asarray(canvas.buffer_rgba())[:h_px, :w_px, 3:4].astype(np.float32) / 255.0
+    del title  # the sidecar describes the sheet; tiles carry their own labels
+    write_png8(path, sheet.astype(np.float32) / 255.0 * (1.0 - ink))
+
+
+def _preview_opencv(path: Path, rows: list[list[dict[str, Any]]], title: str) -> None:
+    """numpy + OpenCV fallback (no matplotlib): the same sheet (:func:`_compose_sheet`), labels drawn by OpenCV."""
+    import cv2
+
+    sheet, texts = _compose_sheet(rows)
+    for x, y, txt, size in texts:
+        cv2.putText(sheet, txt, (x, y), cv2.FONT_HERSHEY_SIMPLEX, size, (0, 0, 0), 1, cv2.LINE_AA)
     del title  # the sidecar describes the sheet; tiles carry their own labels
     write_png8(path, sheet.astype(np.float32) / 255.0)
 
