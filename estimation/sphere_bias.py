@@ -50,46 +50,57 @@ def widen_sphere_summary(summary: dict[str, Any], radius_mm: float, eta: float, 
     out = {k: (dict(v) if isinstance(v, dict) else v) for k, v in summary.items()}
     status = list(summary["status"])
     plain = {k: [list(x) for x in summary[k]["interval"]] for k in _NAMES if k in summary}
-    Ks: list[float | None] = []
+    Ks: list[float | None] = [None] * 3
     rho = float(radius_mm)
+    todo: list[int] = []
+    K = np.full(3, np.nan)
+    bounds = np.full((3, 4), np.nan)       # a_lo, a_hi, s_lo, s_hi
     for c in range(3):
         if status[c] == "unknown":
-            Ks.append(None)
             continue
         a_lo, a_hi = summary["albedo"]["interval"][c]
         s_lo, s_hi = summary["shortening"]["interval"][c]
         l_d = summary["l_d_mm"]["value"][c]
         if not all(v is not None and np.isfinite(v) for v in (a_lo, a_hi, s_lo, s_hi)):
-            Ks.append(None)
             continue
         # a censored fit (alpha' at its bound) has l_d = inf: start from K = 2 margin, the fixed point finds it
-        K = margin * (1.0 + rho / l_d) if l_d is not None and np.isfinite(l_d) and l_d > 0 else 2.0 * margin
-        corners: list[dict[str, Any]] = []
-        for _ in range(6):        # K depends on the lower l_d it implies: fixed point
-            s_model_hi = 1.0 - (1.0 - min(s_hi, 1.0)) / K
-            s_model_lo = 1.0 - (1.0 - s_lo) * under
-            # the four corners in one vectorized inversion (invert_sphere agrees with the scalar nested-Brent
-            # reference to < 1e-9 relative in l' and 1e-12 in alpha'; 4 x 28 ms -> ~10 ms per fixed-point round)
-            al4, ll4, _cens = invert_sphere(np.array([a_lo, a_lo, a_hi, a_hi], dtype=np.float64),
-                                            np.array([s_model_lo, s_model_hi, s_model_lo, s_model_hi]), rho, eta,
-                                            fdr=fdr)
-            good = np.isfinite(al4) & np.isfinite(ll4)
-            d4 = _derived(al4[good], ll4[good], eta, fdr)
-            corners = [{k: float(v[i]) for k, v in d4.items()} for i in range(int(good.sum()))]
-            ld = [cn["l_d_mm"] for cn in corners if np.isfinite(cn["l_d_mm"]) and cn["l_d_mm"] > 0]
+        K[c] = margin * (1.0 + rho / l_d) if l_d is not None and np.isfinite(l_d) and l_d > 0 else 2.0 * margin
+        bounds[c] = (a_lo, a_hi, s_lo, s_hi)
+        todo.append(c)
+    corners: dict[int, list[dict[str, Any]]] = {c: [] for c in todo}
+    active = list(todo)
+    for _ in range(6):        # K depends on the lower l_d it implies: fixed point, every channel in one inversion
+        if not active:
+            break
+        a_lo, a_hi, s_lo, s_hi = (bounds[active, j] for j in range(4))
+        s_model_hi = 1.0 - (1.0 - np.minimum(s_hi, 1.0)) / K[active]
+        s_model_lo = 1.0 - (1.0 - s_lo) * under
+        # the four corners of every active channel in one vectorized inversion (invert_sphere agrees with the
+        # scalar nested-Brent reference to < 1e-9 relative in l' and 1e-12 in alpha'; 28 ms per scalar corner)
+        A4 = np.stack([a_lo, a_lo, a_hi, a_hi], axis=1).reshape(-1)
+        S4 = np.stack([s_model_lo, s_model_hi, s_model_lo, s_model_hi], axis=1).reshape(-1)
+        al4, ll4, _cens = invert_sphere(A4, S4, rho, eta, fdr=fdr)
+        good = np.isfinite(al4) & np.isfinite(ll4)
+        d4 = _derived(np.where(good, al4, 0.5), np.where(good, ll4, 1.0), eta, fdr)
+        still = []
+        for j, c in enumerate(active):
+            corners[c] = [{k: float(v[4 * j + i]) for k, v in d4.items()} for i in range(4) if good[4 * j + i]]
+            ld = [cn["l_d_mm"] for cn in corners[c] if np.isfinite(cn["l_d_mm"]) and cn["l_d_mm"] > 0]
             if not ld:
-                break
+                continue
             K_new = margin * (1.0 + rho / min(ld))
-            if abs(K_new / K - 1) < 0.02:
-                K = K_new
-                break
-            K = K_new
-        Ks.append(float(K))
+            converged = abs(K_new / K[c] - 1) < 0.02
+            K[c] = K_new
+            if not converged:
+                still.append(c)
+        active = still
+    for c in todo:
+        Ks[c] = float(K[c])
         for k in _NAMES:
-            if k not in out or not corners:
+            if k not in out or not corners[c]:
                 continue
             iv = [list(x) for x in out[k]["interval"]]
-            vals = [cn[k] for cn in corners if np.isfinite(cn[k])] + [v for v in iv[c] if v is not None]
+            vals = [cn[k] for cn in corners[c] if np.isfinite(cn[k])] + [v for v in iv[c] if v is not None]
             iv[c] = [float(np.nanmin(vals)), float(np.nanmax(vals))]
             out[k] = {**out[k], "interval": iv}
         D_lo, D_hi = out["D_mm"]["interval"][c]
