@@ -37,7 +37,7 @@ from .single_image import SingleImageResult
 
 __all__ = ["MAX_DELTA_LOG_SA", "RIDGE_CORRELATION", "EDGE_FACTOR", "SCAN_RATIO", "SCAN_STEPS", "SCAN_EXTEND",
            "LINE_STEP_LOG", "LINE_EXTEND", "profile_chi2", "profile_objective", "ridge_channels", "scan_ridge",
-           "ridge_line_search"]
+           "on_the_ridge", "ridge_line_search"]
 
 Array = NDArray[np.float64]
 
@@ -170,6 +170,26 @@ def ridge_line_search(render: Callable[[Array], tuple[Array, Array, Array | None
     return out, info
 
 
+def on_the_ridge(result: SingleImageResult) -> tuple[NDArray[np.bool_], Array]:
+    """(C,) a weak plain fit on the ridge of constant albedo — corr(log sigma_s', log sigma_a) >=
+    :data:`RIDGE_CORRELATION`, sigma_a above its floor (an albedo of 1 is no ridge, :data:`SA_FLOOR_FACTOR`) — and
+    the correlations (C,). Measured on the zoo: every sky- and sun-lit scene, and of the point-lit ones z04, z10, z12
+    (0.92-1.00), which converge; the other point-lit ones -0.75-0.59."""
+    ssp = np.atleast_1d(np.asarray(result.sigma_s_prime_per_mm, dtype=np.float64))
+    n_ch = ssp.size
+    corr = np.full(n_ch, np.nan)
+    if result.correlation_log is not None:
+        corr = np.broadcast_to(np.asarray(result.correlation_log, dtype=np.float64).reshape(-1), (n_ch,))
+    status = (result.extra or {}).get("status") or {}
+    weak = np.array([s != "ok" for s in status.get("sigma_s_prime_per_mm", ["ok"] * n_ch)], dtype=bool)
+    ridge = weak & (np.nan_to_num(corr, nan=-1.0) >= RIDGE_CORRELATION)
+    # sigma_a at its floor: the plain fit's albedo is 1, no ridge to hold (measured: a 5 x 20 x 40 mm ketchup box
+    # under a sun, plain sigma_a 1e-7 /mm, the scan along alpha' = 1 kept sigma_a there and the loop ended at -60 %
+    # instead of -24 %)
+    sa = np.broadcast_to(np.atleast_1d(np.asarray(result.sigma_a_per_mm, dtype=np.float64)), (n_ch,))
+    return ridge & ~(sa <= SA_FLOOR_FACTOR * SA_FLOOR_PER_MM), corr
+
+
 def ridge_channels(result: SingleImageResult, ssp_range_per_mm: tuple[float, float]) -> tuple[NDArray[np.bool_],
                                                                                                 list[str]]:
     """(C,) channels whose plain fit is no start for the reference loop — sigma_s' within :data:`EDGE_FACTOR` of
@@ -181,17 +201,7 @@ def ridge_channels(result: SingleImageResult, ssp_range_per_mm: tuple[float, flo
     n_ch = ssp.size
     lo, hi = ssp_range_per_mm
     edge = (ssp <= EDGE_FACTOR * lo) | (ssp >= hi / EDGE_FACTOR)
-    corr = np.full(n_ch, np.nan)
-    if result.correlation_log is not None:
-        corr = np.broadcast_to(np.asarray(result.correlation_log, dtype=np.float64).reshape(-1), (n_ch,))
-    status = (result.extra or {}).get("status") or {}
-    weak = np.array([s != "ok" for s in status.get("sigma_s_prime_per_mm", ["ok"] * n_ch)], dtype=bool)
-    ridge = weak & (np.nan_to_num(corr, nan=-1.0) >= RIDGE_CORRELATION)
-    # sigma_a at its floor: the plain fit's albedo is 1, no ridge to hold (measured: a 5 x 20 x 40 mm ketchup box
-    # under a sun, plain sigma_a 1e-7 /mm, the scan along alpha' = 1 kept sigma_a there and the loop ended at -60 %
-    # instead of -24 %)
-    sa = np.broadcast_to(np.atleast_1d(np.asarray(result.sigma_a_per_mm, dtype=np.float64)), (n_ch,))
-    ridge &= ~(sa <= SA_FLOOR_FACTOR * SA_FLOOR_PER_MM)
+    ridge, corr = on_the_ridge(result)
     why = [("; ".join(x for x in (
         f"sigma_s' {ssp[c]:.3g} /mm at the edge of the start range {lo:g}-{hi:g} /mm" if edge[c] else "",
         f"sigma_s' weak on the ridge of constant albedo (corr(log sigma_s', log sigma_a) = {corr[c]:.3f})"
