@@ -63,6 +63,11 @@ derivatives from the reference (D = 0: the plain defect correction), the fixed p
 p -> F(p) (slope ~0.6 measured on a skin1 pyramid), so the intervals are widened by max(1, 1/|s|), s the secant slope
 of F(p) - p along the path (x2 when not measured).
 
+Where no channel converged within the budget and the plain fit lies on the ridge of constant albedo (sky- and
+sun-lit bodies), the estimate moves to the minimum of the renders' own profile objective along that ridge
+(:func:`estimation.ridge_scan.ridge_line_search`, 3-6 renders of ``refine_reference`` at more spp): there the
+likelihood is nearly flat and a slope error of the corrected model moves its fixed point far (the zoo's z02: +13 %).
+
 Never confident and wrong: every result carries ``extra["status"]`` per parameter and channel — "ok" only when the
 iteration converged and the interval is finite and narrower than :data:`MAX_OK_INTERVAL_RATIO` (sigma_s') or
 sigma_a is identifiable; "weak" otherwise, with the reason in ``extra["status_reasons"]``. A result that did not
