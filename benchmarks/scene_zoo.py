@@ -222,7 +222,7 @@ def print_scene(spec: SceneSpec, meta: dict[str, Any], folder: Path, results: li
                              for st in r["steps"])
             print(f"- {r['model']} (converged {r['converged']}) step: sigma_s' err | sigma_a err @ cumulative s: "
                   f"{path}")
-        if line := r.get("ridge_line_search"):  # not converged: the line search along the ridge (renders counted above)
+        if line := r.get("ridge_line_search"):  # not converged: the line search along the ridge (renders not counted above)
             grid = "; ".join(", ".join(f"{_pct(g['sigma_s_prime_per_mm'] / spec.sigma_s_prime_per_mm[c] - 1)}: "
                                        f"{g['objective']:.1f}" for g in line["grid"][c])
                              for c in range(len(line["grid"])) if line["grid"][c])

@@ -353,8 +353,9 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
         # derivatives only (the sigma_a refit; no paired difference in sigma_s')
         scan_ref = dataclasses.replace(ref, spp=max(RIDGE_SCAN_MIN_SPP, spp // RIDGE_SCAN_SPP_DIVISOR),
                                        fd_log_sigma_s=0.0, renders=[], spp_levels=(), level=-1)
-        # the ridge line search's renderer: the same scene at more spp, sharing the render log
-        refine_ref = dataclasses.replace(ref, spp=spp * REFINE_SPP_FACTORS[-1], renders=ref.renders,
+        # the ridge line search's renderer: the same scene at more spp, its own render log (reference.renders stays
+        # one entry per loop iteration)
+        refine_ref = dataclasses.replace(ref, spp=spp * REFINE_SPP_FACTORS[-1], renders=[],
                                          fd_log_sigma_s=0.0, spp_levels=tuple(spp * k for k in REFINE_SPP_FACTORS),
                                          level=0)
         try:
@@ -374,6 +375,7 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
                          "reference_mode": mode, "spp_levels": list(ref.spp_levels) or [spp],
                          "sample_count_levels": res.extra.get("sample_count_levels"),
                          "ridge_line_search": res.extra.get("ridge_line_search"),
+                         "line_search_renders": list(refine_ref.renders),
                          "seconds_total": res.extra.get("seconds_total")}
     else:
         res = estimate_single_image(obs, patches, e_t, scene.material.eta, model=model_name, **fit_kw)
