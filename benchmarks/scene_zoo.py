@@ -153,7 +153,7 @@ def run_model(scene: Any, model: str, spec: SceneSpec, ref_spp: int, ref_iterati
            "warnings": rec["warnings"], "stderr_lines": lines, "exception": exc,
            "n_warnings": len(rec["warnings"]) + len(lines) + (exc is not None), "converged": res.get("converged"),
            "renders": len(ref.get("renders") or []), "scan_renders": len(ref.get("scan_renders") or []),
-           "ridge_scan": ref.get("ridge_scan"),
+           "ridge_scan": ref.get("ridge_scan"), "ridge_line_search": ref.get("ridge_line_search"),
            "status": res.get("status"),
            "rows": evaluate(res, model, list(spec.sigma_s_prime_per_mm), list(spec.sigma_a_per_mm))}
     if ref:
@@ -222,6 +222,14 @@ def print_scene(spec: SceneSpec, meta: dict[str, Any], folder: Path, results: li
                              for st in r["steps"])
             print(f"- {r['model']} (converged {r['converged']}) step: sigma_s' err | sigma_a err @ cumulative s: "
                   f"{path}")
+        if line := r.get("ridge_line_search"):  # not converged: the line search along the ridge (renders not counted above)
+            grid = "; ".join(", ".join(f"{_pct(g['sigma_s_prime_per_mm'] / spec.sigma_s_prime_per_mm[c] - 1)}: "
+                                       f"{g['objective']:.1f}" for g in line["grid"][c])
+                             for c in range(len(line["grid"])) if line["grid"][c])
+            print(f"- {r['model']} ridge line search ({line['renders']} renders at {line['spp']} spp, "
+                  f"{sum(line['render_seconds']):.1f} s): sigma_s' err: objective {grid} -> "
+                  + "/".join(_pct(v / t - 1) for v, t in zip(line["sigma_s_prime_per_mm"],
+                                                             spec.sigma_s_prime_per_mm)))
     sys.stdout.flush()
 
 

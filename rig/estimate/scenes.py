@@ -41,6 +41,11 @@ RIDGE_SCAN_SPP_DIVISOR, RIDGE_SCAN_MIN_SPP = 4, 8
 #: (estimation.model_correction.RENDER_NOISE_FRACTION); "legacy": every render at reference_spp
 REFERENCE_SPP_LEVEL_DIVISORS, REFERENCE_MIN_SPP = (8, 4, 2, 1), 8
 REFERENCE_MODES = ("adaptive", "legacy")
+#: mc-table+reference's ridge line search (estimation.model_correction, ``refine_reference``): when no channel has
+#: converged within reference_iterations renders, 3-6 renders along the ridge of constant albedo at reference_spp x
+#: one of REFINE_SPP_FACTORS (the smallest whose noise is at most half the plain fit's standard errors, else the
+#: largest), score-function derivatives only (the sigma_a refit): the zoo's sky-lit boxes z02 / z11
+REFINE_SPP_FACTORS = (2, 4, 8)
 #: the default stays "legacy" until a full zoo run (benchmarks/scene_zoo.py) has checked "adaptive" on every scene:
 #: measured so far on z10 alone (benchmarks/reference_speed.py; docs/model-error.md)
 DEFAULT_REFERENCE_MODE = "legacy"
@@ -348,9 +353,15 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
         # derivatives only (the sigma_a refit; no paired difference in sigma_s')
         scan_ref = dataclasses.replace(ref, spp=max(RIDGE_SCAN_MIN_SPP, spp // RIDGE_SCAN_SPP_DIVISOR),
                                        fd_log_sigma_s=0.0, renders=[], spp_levels=(), level=-1)
+        # the ridge line search's renderer: the same scene at more spp, its own render log (reference.renders stays
+        # one entry per loop iteration)
+        refine_ref = dataclasses.replace(ref, spp=spp * REFINE_SPP_FACTORS[-1], renders=[],
+                                         fd_log_sigma_s=0.0, spp_levels=tuple(spp * k for k in REFINE_SPP_FACTORS),
+                                         level=0)
         try:
             res = estimate_with_reference(obs, patches, e_t, scene.material.eta, ref, base_model="mc-table",
                                           max_iterations=iterations, seed=ref_seed, scan_reference=scan_ref,
+                                          refine_reference=refine_ref,
                                           **fit_kw)
         except ValueError as exc:  # e.g. the reference has no value at any observed patch
             res = SingleImageResult(False, f"Monte Carlo reference: {exc}", meth, model_name, scene.material.eta)
@@ -363,6 +374,8 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
                          "scan_render_seconds_total": float(sum(r["seconds"] for r in scan_ref.renders)),
                          "reference_mode": mode, "spp_levels": list(ref.spp_levels) or [spp],
                          "sample_count_levels": res.extra.get("sample_count_levels"),
+                         "ridge_line_search": res.extra.get("ridge_line_search"),
+                         "line_search_renders": list(refine_ref.renders),
                          "seconds_total": res.extra.get("seconds_total")}
     else:
         res = estimate_single_image(obs, patches, e_t, scene.material.eta, model=model_name, **fit_kw)

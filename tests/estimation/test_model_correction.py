@@ -385,3 +385,38 @@ def test_sample_count_matched_to_the_fits_noise(observed, top_noise, want_spp):
     assert lo <= TRUTH[0] <= hi, (lo, hi)
     if r.extra["status"]["sigma_s_prime_per_mm"] == ["ok"]:
         assert abs(r.sigma_s_prime_per_mm[0] / TRUTH[0] - 1) < 0.05
+
+
+
+def test_ridge_line_search_runs_when_nothing_converged(observed):
+    """Issue 15 (the sky-lit boxes): a budget spent without convergence ends with the ridge line search on
+    ``refine_reference`` (at the level whose noise matches the fit's: the top one for a reference without
+    ``current_spp``); the estimate moves to its minimum, stays weak, and its interval holds the loop's point and the
+    new one; the renders are logged in ``extra["ridge_line_search"]``."""
+    obs, sig = observed
+    coarse = WithDerivatives(_distorted_value)
+    fine = Levelled(_distorted_value, rel_noise_at_top=0.002)
+    r = estimate_with_reference(obs, PAT, LIGHT, ETA, coarse, noise_sigma=sig, max_iterations=1, model_error=0.005,
+                                refine_reference=fine)
+    info = r.extra["ridge_line_search"]
+    assert info is not None and len(coarse.calls) == 1 and 3 <= len(fine.spp_calls) == info["renders"] <= 6
+    assert set(fine.spp_calls) == {128} and info["spp"] == 128
+    assert not r.extra["converged"] and r.extra["status"]["sigma_s_prime_per_mm"] == ["weak"]
+    assert r.sigma_s_prime_per_mm[0] == pytest.approx(info["sigma_s_prime_per_mm"][0], rel=3e-3)
+    lo, hi = r.sigma_s_prime_ci_per_mm[0]
+    assert lo <= min(info["loop_sigma_s_prime_per_mm"][0], r.sigma_s_prime_per_mm[0], TRUTH[0])
+    assert hi >= max(info["loop_sigma_s_prime_per_mm"][0], r.sigma_s_prime_per_mm[0], TRUTH[0])
+    assert abs(r.sigma_s_prime_per_mm[0] / TRUTH[0] - 1) < 0.05
+
+
+def test_ridge_line_search_never_runs_where_the_loop_converged(observed):
+    """A loop that converges within its budget never calls ``refine_reference``: the same renders and the same
+    estimate as without it (point-lit zoo scenes run exactly as before)."""
+    obs, sig = observed
+    kw = dict(noise_sigma=sig, max_iterations=6, model_error=0.005)
+    plain = estimate_with_reference(obs, PAT, LIGHT, ETA, WithDerivatives(_distorted_value), **kw)
+    fine = Levelled(_distorted_value)
+    r = estimate_with_reference(obs, PAT, LIGHT, ETA, WithDerivatives(_distorted_value), refine_reference=fine, **kw)
+    assert plain.extra["converged"] and r.extra["ridge_line_search"] is None and fine.spp_calls == []
+    np.testing.assert_array_equal(r.sigma_s_prime_per_mm, plain.sigma_s_prime_per_mm)
+    np.testing.assert_array_equal(r.sigma_a_ci_per_mm, plain.sigma_a_ci_per_mm)

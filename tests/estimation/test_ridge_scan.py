@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from estimation.ridge_scan import (EDGE_FACTOR, MAX_DELTA_LOG_SA, RIDGE_CORRELATION, SCAN_RATIO, profile_chi2,
-                                   ridge_channels, scan_ridge)
+from estimation.ridge_scan import (EDGE_FACTOR, LINE_STEP_LOG, MAX_DELTA_LOG_SA, RIDGE_CORRELATION, SCAN_RATIO,
+                                   profile_chi2, ridge_channels, ridge_line_search, scan_ridge)
 from estimation.single_image import SingleImageResult
 
 TRUTH = np.log(np.array([[0.7, 0.0014], [1.2, 0.0025]]))  # log (sigma_s', sigma_a) per channel
@@ -112,3 +112,33 @@ def test_the_start_stays_where_the_frame_does_not_clearly_prefer_another_point()
                            np.array([True, True]))
     np.testing.assert_array_equal(out, start)
     assert info["moved"] == [False, False] and info["renders"] >= 7
+
+
+@pytest.mark.parametrize("off", [1.25, 0.9])
+def test_the_line_search_finds_the_renders_minimum_along_the_ridge(off: float) -> None:
+    """A loop's point 25 % (10 %) off along the ridge: the line search renders k = 0, -1, 1 steps of LINE_STEP_LOG
+    (albedo held), extends past the end while the best point lies there, and lands within a few % of the truth at
+    the parabola's vertex; channel 1, not asked for, keeps its point; one metric (the first render's) for all."""
+    obs, _, _, _ = _render(TRUTH)
+    start = TRUTH + np.log(off)
+    calls: list[np.ndarray] = []
+    metrics: list[np.ndarray] = []
+
+    def render(th: np.ndarray):
+        calls.append(th.copy())
+        return _render(th)
+
+    def metric(se: np.ndarray, q: np.ndarray) -> np.ndarray:
+        metrics.append(q)
+        return _metric(se, q)
+
+    out, info = ridge_line_search(render, obs, metric, start, np.array([True, False]))
+    assert abs(np.exp(out[0, 0] - TRUTH[0, 0]) - 1.0) < 0.03, np.exp(out[0, 0] - TRUTH[0, 0])
+    np.testing.assert_array_equal(out[1], start[1])
+    ks = [g["k"] for g in info["grid"][0]]
+    assert {-1, 0, 1} <= set(ks)
+    assert info["renders"] == len(calls) <= 6 and len(metrics) == 1
+    if off > 1.1:  # 1.86 steps off: the grid had to be extended downwards
+        assert min(ks) <= -2
+    assert all(np.isclose(th[0, 0] - th[0, 1], start[0, 0] - start[0, 1]) for th in calls)
+    assert abs(info["vertex_k"][0] * LINE_STEP_LOG + np.log(off)) < 0.03 and info["vertex_k"][1] is None
