@@ -294,9 +294,39 @@ def acceptance(a: argparse.Namespace) -> int:
     return 0
 
 
+def reprint(before_json: Path | None, after_jsons: list[Path]) -> int:
+    """The rule lines before and after the loop over the cases that the acceptance-mode JSONs hold (partial or
+    several runs), the before rows taken from a gradients_acceptance.py JSON of the same frames."""
+    from benchmarks.gradients_acceptance import case_rows, print_rules, rules
+
+    if before_json is None or not after_jsons:
+        raise SystemExit("reprint needs --before GRADIENTS_ACCEPTANCE_JSON and --after ACCEPTANCE_JSON...")
+    after: list[dict[str, Any]] = []
+    done: list[str] = []
+    for f in after_jsons:
+        if not Path(f).is_file():
+            raise SystemExit(f"--after: no such file {f}")
+        for c in json.loads(Path(f).read_text()).get("cases", []):
+            _, per, mat = c["case"].split()
+            case = case_for(mat, float(per[1:-2]))
+            after += case_rows(case, {"diffusion": c["correction"]}, "normals_file")
+            done.append(case.name + " (normals_file)")
+    before = [r for r in json.loads(Path(before_json).read_text())["rows"] if r["case"] in done]
+    for label, rs in (("before (the frame's relief fit)", before), ("after the reference loop", after)):
+        print(f"## {label}: {len(done)} cases")
+        for r in rs:
+            print(f"  {r['case']} {r['channel']}: l_d {r['err']:+.1%} [{r['interval'][0]:.3g}, {r['interval'][1]:.3g}] "
+                  f"{'covered' if r['covered'] else 'NOT covered'} {r['status']}")
+        print_rules(rules(rs))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("mode", choices=("bias", "loop", "acceptance"))
+    ap.add_argument("mode", choices=("bias", "loop", "acceptance", "reprint"))
+    ap.add_argument("--before", type=Path, help="reprint: benchmarks/gradients_acceptance.py --json output of the same "
+                                                 "frames (the before rows)")
+    ap.add_argument("--after", type=Path, nargs="*", default=[], help="reprint: acceptance-mode JSONs (partial runs)")
     ap.add_argument("--cases", default="", help="acceptance: substrings of the relief case names to run (default all)")
     ap.add_argument("--min-one-minus-alpha", type=float, default=5e-4,
                     help="lower bound of 1 - alpha' of the rendered references (render cost; the truths are >= 1e-3)")
@@ -315,6 +345,8 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     if a.mode == "acceptance":
         return acceptance(a)
+    if a.mode == "reprint":
+        return reprint(a.before, a.after)
     case = case_for(a.material, a.period)
     a_t, l_t = truth_alpha_l(a.material)
     ssp_t, sa_t = a_t / l_t, (1 - a_t) / l_t
