@@ -12,12 +12,15 @@ Carlo renderer's sources, ``RENDER_VERSION``).
 
 Modes (``python benchmarks/relief_reference.py MODE --material skin1 --period 4 ...``):
 
-- ``bias``: two quiet renders at the truth (``--spp`` paths, no camera noise; seeds ``--seed`` and ``--ref-seed``):
-  what the pipeline reads on the first one against the truth (the estimator's bias with little noise), the same
-  corrected by the loop with references at ``--ref-seed``; and the frames' Monte Carlo standard error against the
-  camera's (the cases' sensor: 1.5 e-/DN, read noise 2 DN) -- issue 16's "noise as a real camera would add";
+- ``bias``: a quiet render at the truth (``--spp`` paths, no camera noise, seed ``--seed``) and, with
+  ``--truth-seeds``, more of them: what the pipeline reads against the truth (the estimator's bias with little
+  noise, mean over seeds); the first one corrected by the loop with references pooled over ``--ref-seeds``; and the
+  frame's Monte Carlo standard error against the camera's (the cases' sensor: 1.5 e-/DN, read noise 2 DN) --
+  issue 16's "noise as a real camera would add";
 - ``loop``: the acceptance case's own frames (16-64 spp with camera noise, ``benchmarks.gradients_cases``, normals
-  given) corrected by quiet references; or with ``--frame-spp N`` a frame rendered at N spp with camera noise.
+  given) corrected by references; or with ``--frame-spp N`` a frame rendered at N spp with camera noise;
+- ``acceptance``: every relief case (``--cases`` to choose), the rule lines of benchmarks/gradients_acceptance.py
+  before and after the loop; ``reprint --before GA.json --after A.json...``: the same from saved JSONs.
 
 Output: per channel truth, uncorrected and corrected l', 1 - alpha', l_d, intervals, status; ``--json OUT``.
 """
