@@ -105,8 +105,10 @@ def fit_direct_channel(vector_fn: Any, matrix: Array, l: Array, sigma: Array | N
     def data_now(theta: Array) -> Array:
         if slope is None:
             return l
-        prob = problem(np.ones_like(l))
-        return l - slope @ prob.phi(np.asarray(theta, dtype=np.float64)[None, :])[0]
+        # (phi of _Problem, without building and reducing a whole weighted problem for it)
+        phi = _Problem(vector_fn, None, l, l.size, l, theta_ref=theta_ref).phi(
+            np.asarray(theta, dtype=np.float64)[None, :])[0]
+        return l - slope @ phi
 
     if warm and box is not None and start_hint is not None and np.all(np.isfinite(start_hint)):
         out = _warm_refit(vector_fn, matrix, l, sigma, problem, data_now, sa_floor=sa_floor, model_error=model_error,
