@@ -460,7 +460,6 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
     metric: Array | None = None
     huber_scale: float | None = None
     pred_img: Array | None = None  # the image the corrected model predicts at the next render point
-    base_img: Array | None = None  # ... and at the accepted point (the ratio test's predicted decrease starts there)
     converged = np.zeros(n_ch, bool)
     with_derivatives = False
     path: list[tuple[Array, Array]] = []  # (accepted point, refit) for the derivative-free widening
@@ -513,12 +512,7 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
             objective = _huber_sum((obs - q) / (metric * huber_scale))
             if acc is not None:
                 acc.objective = _huber_sum((obs - acc.q) / (metric * huber_scale))
-                # the ratio test's prediction: the corrected model's own decrease, F_acc at the accepted point to F_acc
-                # at the step (F_acc(theta_acc) is the smoothed render, not the render: measured on z10 at 16 spp,
-                # render-to-F objective differences of ~130 chi-square units at a 1 % step, actual decrease 4.8, rho
-                # 0.035, the radius cut to 0.01 and the loop creeping by 1 % per render)
                 predicted = _huber_sum((obs - pred_img) / (metric * huber_scale))
-                predicted_from = _huber_sum((obs - base_img) / (metric * huber_scale))
             m_fast, dm_fast = _fast_model(patches, e_t, eta_f, theta_try, base_model)
         new = _build(theta_try, q, se, dq, dq_se, m_fast, dm_fast, smoother, slope_smoothers, objective,
                      1.0 / metric ** 2)
@@ -528,7 +522,7 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
         rho_is_first = acc is None
         if acc is not None:
             actual = acc.objective - objective
-            pred = predicted_from - predicted
+            pred = acc.objective - predicted
             with np.errstate(all="ignore"):
                 rho = np.where(pred > 0, actual / pred, np.where(actual >= 0, 1.0, -np.inf))
             # any decrease is accepted (the Monte Carlo noise of the objective along a step makes the ratio itself
@@ -601,10 +595,6 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
             if gn_step is not None and acc.jac is not None:  # the linearization's image where it stepped
                 f_fit = np.where(gn_mode[None, :], acc.q + np.einsum("mck,ck->mc", acc.jac, gn_step), f_fit)
             pred_img = f_fit
-            m_acc_img, _ = _fast_model(patches, e_t, eta_f, acc.theta, base_model)
-            base_img = acc.kappa * m_acc_img + acc.shift  # F_acc at the accepted point (phi = 0 there)
-            if gn_step is not None:  # the linearization's image there is the render itself
-                base_img = np.where(gn_mode[None, :], acc.q, base_img)
         kq = np.where(acc.additive | ~np.isfinite(acc.kappa), np.nan, acc.kappa)
         with np.errstate(all="ignore"):
             kstats = [np.nanmedian(kq, axis=0), np.nanpercentile(kq, 5, axis=0), np.nanpercentile(kq, 95, axis=0),
