@@ -42,7 +42,8 @@ RIDGE_SCAN_SPP_DIVISOR, RIDGE_SCAN_MIN_SPP = 4, 8
 REFERENCE_SPP_LEVEL_DIVISORS, REFERENCE_MIN_SPP = (8, 4, 2, 1), 8
 REFERENCE_MODES = ("adaptive", "legacy")
 #: the default stays "legacy" until a full zoo run (benchmarks/scene_zoo.py) has checked "adaptive" on every scene:
-#: measured so far on z10 alone (benchmarks/reference_speed.py; docs/model-error.md)
+#: measured so far on eight zoo scenes against main's adaptive and on three (z10, z04, z15) against legacy
+#: (docs/model-error.md, "Fewer and smaller renders")
 DEFAULT_REFERENCE_MODE = "legacy"
 
 
