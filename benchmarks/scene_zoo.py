@@ -134,14 +134,14 @@ def file_check(scene: Any, spec: SceneSpec, spp: int) -> list[float]:
 
 
 def run_model(scene: Any, model: str, spec: SceneSpec, ref_spp: int, ref_iterations: int,
-              shadows: str | None = None) -> dict[str, Any]:
+              shadows: str | None = None, reference_mode: str | None = None) -> dict[str, Any]:
     from rig.estimate.scenes import estimate_scene
 
     t0 = time.perf_counter()
     with captured() as rec:
         try:
             res = estimate_scene(scene, model=model, reference_spp=ref_spp, reference_iterations=ref_iterations,
-                                 shadows=shadows)
+                                 shadows=shadows, reference_mode=reference_mode)
             exc = None
         except Exception as e:  # noqa: BLE001 - a crash is a result of the zoo, counted like a warning
             res, exc = {"success": False, "message": f"exception {type(e).__name__}: {e}",
@@ -308,6 +308,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--reference-spp", type=int, help="mc-table+reference render spp (default 128, --quick 32)")
     ap.add_argument("--reference-iterations", type=int, help="at most this many reference renders (default 6, "
                     "--quick 4)")
+    ap.add_argument("--reference-mode", choices=["adaptive", "legacy"],
+                    help="mc-table+reference sample counts (rig estimate single-image --reference-mode; default: its "
+                         "default)")
     ap.add_argument("--scenes", help="comma-separated scene indices (default: all of the zoo or the subset)")
     ap.add_argument("--family", choices=["zoo", "nonconvex", "all"], default="zoo",
                     help="zoo: the 24 drawn convex scenes (default; --quick takes its subset of them); nonconvex: "
@@ -357,9 +360,11 @@ def main(argv: list[str] | None = None) -> int:
         both = args.shadows == "both" and not is_convex_mesh(scene.mesh_data.vertices, scene.mesh_data.faces)
         for m in models:
             print(f"[{i + 1}/{len(specs)}] {spec.name}: {m}", file=sys.stderr, flush=True)
-            results.append(run_model(scene, m, spec, ref_spp, ref_it, shadows=first))
+            results.append(run_model(scene, m, spec, ref_spp, ref_it, shadows=first,
+                                     reference_mode=args.reference_mode))
             if both:
-                results_off.append(run_model(scene, m, spec, ref_spp, ref_it, shadows="off"))
+                results_off.append(run_model(scene, m, spec, ref_spp, ref_it, shadows="off",
+                                             reference_mode=args.reference_mode))
         meta["file_check"] = check
         print_scene(spec, meta, folder, results)
         if results_off:

@@ -336,14 +336,16 @@ def _estimate(observed_radiance: ArrayLike, patches: Patches, lights: Lights, et
         far_field = "clustered" if vis.size * k_all > budget else "exact"
     if far_field_theta is None:
         far_field_theta = FAR_FIELD_THETA_BINNED if binned else FAR_FIELD_THETA
-    geo = _Geometry(patches.centers_mm[vis], patches.centers_mm, patches.areas_mm2, c_k, rho, cutoff_mm,
-                    far_field, far_field_theta, spacing)
+    geo_args = (patches.centers_mm[vis], patches.centers_mm, patches.areas_mm2, c_k, rho, cutoff_mm, far_field,
+                far_field_theta, spacing)
+    geo = _Geometry(*geo_args)
     notes: list[str] = []
 
     # ------------------------------------------------------------------ per-method system
     ring_max = float(geo.ring_out.max(initial=0.0))
     if method == "direct":
-        mats, disk_nodes, far_nodes = _direct_system(geo, n_ch)
+        # (cached by content: the reference loop's refits see the same patches and light every time)
+        mats, disk_nodes, far_nodes = _cached_direct_system(geo_args, n_ch)
         bins = np.arange(0.0, max(geo.d_max, rho) + bin_mm, bin_mm)
         cond = np.nan
         empty = 0

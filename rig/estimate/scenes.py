@@ -47,7 +47,8 @@ REFERENCE_MODES = ("adaptive", "legacy")
 #: largest), score-function derivatives only (the sigma_a refit): the zoo's sky-lit boxes z02 / z11
 REFINE_SPP_FACTORS = (2, 4, 8)
 #: the default stays "legacy" until a full zoo run (benchmarks/scene_zoo.py) has checked "adaptive" on every scene:
-#: measured so far on z10 alone (benchmarks/reference_speed.py; docs/model-error.md)
+#: measured so far on eight zoo scenes against main's adaptive and on three (z10, z04, z15) against legacy
+#: (docs/model-error.md, "Fewer and smaller renders")
 DEFAULT_REFERENCE_MODE = "legacy"
 
 

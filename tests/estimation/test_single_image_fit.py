@@ -211,3 +211,64 @@ def test_fit_channel_box_wholly_beyond_the_range_keeps_a_sliver_on_its_end():
     fit = _fit_channel(problem, SA_FLOOR, profile=False, box=box)
     assert fit.ok, fit.message
     assert LB[1] - 1e-12 <= fit.theta[1] <= LB[1] + 2e-3
+
+
+def _quadratic_problem(x0: float, y0: float, sx: float, sy: float) -> _Problem:
+    """Residuals (3, T) whose SSR is ((x - x0) / sx)^2 + ((y - y0) / sy)^2 + 0.25 (+ a coupling): the 95 % profile
+    interval of y is y0 +- 1.96 sy exactly (known noise, s^2 = 1)."""
+
+    def fn(theta: np.ndarray) -> np.ndarray:
+        x, y = theta[:, 0], theta[:, 1]
+        return np.stack([(x - x0) / sx + 0.5 * (y - y0) / sy, (y - y0) / sy, np.full_like(x, 0.5)])
+
+    return _Problem(fn, None, np.zeros(3), 10, np.ones(3))
+
+
+def test_warm_refit_profile_resolves_a_well_determined_sigma_a():
+    """A refit near a known solution (``local``: box + hint; issue 19) finds the same minimum as the cold fit, and its
+    sigma_a profile interval is the exact y0 +- 1.96 sy; the whole-range scan's 0.5-log grid cannot resolve an
+    interval that narrow (linear interpolation between the estimate and its outside neighbour: far too narrow)."""
+    x0, y0, sx, sy = np.log(0.8), np.log(0.16), 0.03, 0.02
+    problem = _quadratic_problem(x0, y0, sx, sy)
+    hint = np.array([x0 + 0.05, y0 - 0.04])
+    box = (hint - 0.7, hint + 0.7)
+    cold = _fit_channel(problem, SA_FLOOR, known_noise=True, box=box, start_hint=hint)
+    warm = _fit_channel(problem, SA_FLOOR, known_noise=True, box=box, start_hint=hint, local=True)
+    assert cold.ok and warm.ok, (cold.message, warm.message)
+    assert warm.theta == pytest.approx(cold.theta, abs=1e-7)
+    assert warm.theta == pytest.approx([x0, y0], abs=1e-7)
+    exact = np.exp(y0 + np.array([-1.0, 1.0]) * 1.959963984540054 * sy)
+    assert np.array(warm.sa_profile_ci) == pytest.approx(exact, rel=2e-3)
+    lo, hi = cold.sa_profile_ci
+    assert hi / lo < 1.0 + 0.5 * (exact[1] / exact[0] - 1.0)  # the coarse grid's artefact the local scan removes
+    assert problem.nfev > 0
+
+
+def test_warm_direct_refit_matches_the_cold_one():
+    """fit_direct_channel with a box and a hint (the reference loop's refit) skips the first fit and reweights only
+    while the weights move: the same estimate and intervals as the cold path (warm=False) on a noisy system."""
+    from estimation.single_image.weights import fit_direct_channel
+
+    rng = np.random.default_rng(19)
+    m = 60
+    matrix = rng.uniform(0.2, 1.0, (m, 2))
+
+    def vector_fn(theta: np.ndarray) -> np.ndarray:
+        return np.stack([np.exp(-theta[:, 0]), theta[:, 1] * np.exp(theta[:, 1])])
+
+    truth = np.array([np.log(0.8), np.log(0.16)])
+    clean = matrix @ vector_fn(truth[None, :])[:, 0]
+    sigma = 0.01 * np.abs(clean)
+    l = clean + sigma * rng.standard_normal(m)
+    l[7] *= 3.0  # an outlier for the Huber weights
+    hint = truth + np.array([0.03, -0.02])
+    box = (hint - 0.7, hint + 0.7)
+    kw = dict(sa_floor=SA_FLOOR, model_error=0.0, noise_floor=0.01, robust=True, profile=True, start_hint=hint,
+              box=box)
+    cold = fit_direct_channel(vector_fn, matrix, l, sigma, warm=False, **kw)
+    warm = fit_direct_channel(vector_fn, matrix, l, sigma, **kw)
+    assert cold.fit.ok and warm.fit.ok
+    se = np.sqrt(np.diag(cold.fit.cov))
+    assert np.all(np.abs(warm.fit.theta - cold.fit.theta) <= 1e-3 * se)
+    assert warm.robust_weight[7] < 0.5 and cold.robust_weight[7] < 0.5
+    assert warm.nfev_extra < cold.nfev_extra
