@@ -187,7 +187,7 @@ def _render(case: Case) -> tuple[Any, list[str], dict[str, Any]]:
 def build_case(case: Case, root: Path | None = None) -> tuple[Path, dict[str, Any]]:
     """The case's capture folder (rendered now, or found in the cache) and its meta data."""
     from drivers.atomic import atomic_write
-    from rig.files.imageio import write_exr
+    from rig.estimate.capture_folder.write import write_frames_and_leds
 
     folder = (root or default_root()) / content_hash(case)
     meta_path = folder / "meta.json"
@@ -204,14 +204,10 @@ def build_case(case: Case, root: Path | None = None) -> tuple[Path, dict[str, An
              f'description = "benchmarks/gradients_cases.py: {case.name}, {case.size_px} px, {case.spp} spp, '
              f'seed {case.seed}, camera noise"', ""]
     fr = np.stack([np.asarray(f) for (p, _), f in cap.frames.items() if p != "ambient"])
-    for (p, pol), img in sorted(cap.frames.items()):
-        write_exr(folder / f"frames/{p}_{pol}.exr", img)
-        lines += ["[[frames]]", f'file = "frames/{p}_{pol}.exr"', f'pattern = "{p}"', f'polarization = "{pol}"',
-                  f"exposure_s = {EXPOSURE_S}", ""]
-    np.save(folder / "leds.npy", np.hstack([pos, inten]))
+    lines += write_frames_and_leds(folder, cap.frames, EXPOSURE_S, np.hstack([pos, inten]))
     if case.family == "relief":
         np.save(folder / "true_normals.npy", np.nan_to_num(cap.normals).astype(np.float32))
-    lines += ["[leds]", 'file = "leds.npy"', "", *cam_lines, "[radiometry]", f"eta = {ETA}",
+    lines += [*cam_lines, "[radiometry]", f"eta = {ETA}",
               f"value_per_radiance_per_s = {GAIN_DN_PER_UNIT / (WHITE_DN - BLACK_DN)!r}", ""]
     atomic_write(folder / "capture.toml", lambda p: p.write_text("\n".join(lines)))
     hit = np.asarray(cap.hit, dtype=bool)

@@ -70,7 +70,7 @@ def render_relief(case: gc.Case, ssp: np.ndarray, sa: np.ndarray, spp: int, seed
     from drivers.atomic import atomic_write
     from estimation.camera import OrthographicCamera
     from rig.estimate.reference.folder_reference import renderable_camera
-    from rig.files.imageio import write_exr
+    from rig.estimate.capture_folder.write import write_frames_and_leds
     from simulators.mc._cache import sources_hash
     from simulators.mc_capture import MCSettings
     from simulators.scene import BumpySlabObject, render_gradient_capture
@@ -105,17 +105,13 @@ def render_relief(case: gc.Case, ssp: np.ndarray, sa: np.ndarray, spp: int, seed
                                   rng=np.random.default_rng(1000 + int(seed)), render_mode="mc", mc=mc)
     seconds = time.perf_counter() - t0
     lines = ['format = "sssrig-capture"', "format_version = 1", 'name = "relief reference"', ""]
-    for (p, pol), img in sorted(cap.frames.items()):
-        write_exr(folder / f"frames/{p}_{pol}.exr", img)
-        lines += ["[[frames]]", f'file = "frames/{p}_{pol}.exr"', f'pattern = "{p}"', f'polarization = "{pol}"',
-                  f"exposure_s = {gc.EXPOSURE_S}", ""]
-    np.save(folder / "leds.npy", np.hstack([pos, inten]))
+    lines += write_frames_and_leds(folder, cap.frames, gc.EXPOSURE_S, np.hstack([pos, inten]))
     np.save(folder / "true_normals.npy", np.nan_to_num(cap.normals).astype(np.float32))
     # the Monte Carlo standard error of the full cross frame, in frame units (for the frame-noise comparison)
     se = cap.diffuse_stderr or {}
     if "full" in se:
         np.save(folder / "full_cross_mc_stderr.npy", (0.5 * cap.value_per_radiance * se["full"]).astype(np.float32))
-    lines += ["[leds]", 'file = "leds.npy"', "", "[camera]", 'model = "orthographic"',
+    lines += ["[camera]", 'model = "orthographic"',
               f"pixel_size_mm = {case.pixel_mm!r}", "look_direction = [0.0, 1.0, 0.0]", "", "[radiometry]",
               f"eta = {gc.ETA}", f"value_per_radiance_per_s = {gc.GAIN_DN_PER_UNIT / (gc.WHITE_DN - gc.BLACK_DN)!r}",
               "", "[object]", 'shape = "relief"', 'normals_file = "true_normals.npy"', ""]

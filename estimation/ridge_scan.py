@@ -68,6 +68,17 @@ LINE_STEP_LOG: float = 0.12
 LINE_EXTEND: int = 3
 
 
+def _render_points(render: Callable[[Array], tuple[Array, Array, Array | None, float]], base: Array,
+                   todo: list[int | None], point: Callable[[int, int], Array | None]
+                   ) -> tuple[Array, Array, Array | None, float]:
+    """One render with channel c at ``point(c, k)`` where ``todo[c]`` = k is set, at ``base[c]`` (C, 2) elsewhere."""
+    th = base.copy()
+    for c, k in enumerate(todo):
+        if k is not None:
+            th[c] = point(c, k)
+    return render(th)
+
+
 def profile_chi2(r: Array, d: Array, w: Array, max_delta: float = MAX_DELTA_LOG_SA) -> tuple[float, float, float]:
     """(chi^2 at the render, chi^2 with sigma_a re-optimised to first order, that delta log sigma_a) for residuals
     ``r`` = observed - rendered, the render's derivative ``d`` = d Q / d log sigma_a and weights ``w`` (1-D,
@@ -120,11 +131,7 @@ def ridge_line_search(render: Callable[[Array], tuple[Array, Array, Array | None
         return theta[c] + k * step_log
 
     def run(todo: list[int | None]) -> None:
-        th = theta.copy()
-        for c, k in enumerate(todo):
-            if k is not None:
-                th[c] = pt(c, k)
-        q, se, dq, sec = render(th)
+        q, se, dq, sec = _render_points(render, theta, todo, pt)
         seconds.append(sec)
         if not fixed:
             fixed.append(metric(se, q))
@@ -251,11 +258,7 @@ def scan_ridge(render: Callable[[Array], tuple[Array, Array, Array | None, float
     t0 = time.perf_counter()
 
     def run(todo: list[int | None]) -> None:
-        th = theta_start.copy()
-        for c, k in enumerate(todo):
-            if k is not None:
-                th[c] = point(c, k)
-        q, se, dq, sec = render(th)
+        q, se, dq, sec = _render_points(render, theta_start, todo, point)
         seconds.append(sec)
         m = metric(se, q)
         for c, k in enumerate(todo):

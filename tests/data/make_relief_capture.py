@@ -33,7 +33,7 @@ def main(out: str, material: str, n_px: int = 64, px_mm: float = 0.2, spp: int =
     from estimation.gradients import LedRig
     from rig.estimate.reference.folder_reference import renderable_camera
     from rig.acquire.geometry import led_layout
-    from rig.files.imageio import write_exr
+    from rig.estimate.capture_folder.write import write_frames_and_leds
     from simulators.camera import SensorModel
     from simulators.mc_capture import MCSettings
     from simulators.scene import BumpySlabObject, render_gradient_capture
@@ -59,13 +59,9 @@ def main(out: str, material: str, n_px: int = 64, px_mm: float = 0.2, spp: int =
     lines = ['format = "sssrig-capture"', "format_version = 1", f'name = "relief-{material}"',
              f'description = "Monte Carlo relief slab, {material}, {n_px} px of {px_mm} mm, {spp} spp, '
              f'RMS slope {rms_slope}, {seconds:.0f} s (tests/data/make_relief_capture.py)"', ""]
-    for (p, pol), img in sorted(cap.frames.items()):
-        write_exr(folder / f"frames/{p}_{pol}.exr", img)
-        lines += ["[[frames]]", f'file = "frames/{p}_{pol}.exr"', f'pattern = "{p}"', f'polarization = "{pol}"',
-                  f"exposure_s = {EXPOSURE}", ""]
-    np.save(folder / "leds.npy", np.hstack([pos, inten]))
+    lines += write_frames_and_leds(folder, cap.frames, EXPOSURE, np.hstack([pos, inten]))
     np.save(folder / "true_normals.npy", np.nan_to_num(cap.normals).astype(np.float32))
-    lines += ["[leds]", 'file = "leds.npy"', "", "[camera]", 'model = "orthographic"', f"pixel_size_mm = {px_mm!r}",
+    lines += ["[camera]", 'model = "orthographic"', f"pixel_size_mm = {px_mm!r}",
               "look_direction = [0.0, 1.0, 0.0]", "", "[radiometry]", f"eta = {ETA}",
               f"value_per_radiance_per_s = {GAIN / (WHITE - BLACK)!r}", ""]
     (folder / "capture.toml").write_text("\n".join(lines))
