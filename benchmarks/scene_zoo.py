@@ -373,17 +373,25 @@ def main(argv: list[str] | None = None) -> int:
         scenes.append({"name": spec.name, "folder": str(folder), "classes": sorted(
             spec.classes | {"noise-section" if spec.noise_section else "no-noise-section"}), "meta": meta,
                        "results": results, **({"results_shadows_off": results_off} if results_off else {})})
+        if args.json:  # after every scene (atomically): a run stopped part-way keeps the scenes it finished
+            _write_doc(args.json, args.quick, ref_spp, ref_it, models, scenes, None, time.perf_counter() - t_all)
     verdict = summarize(scenes, models)
     total = time.perf_counter() - t_all
     print(f"\ntotal {total:.0f} s ({len(specs)} scenes; frames rendered this run "
           f"{sum(not s['meta'].get('cached') for s in scenes)}, frame render seconds "
           f"{sum(s['meta']['render_seconds'] for s in scenes if not s['meta'].get('cached')):.0f})")
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        doc = {"quick": args.quick, "reference_spp": ref_spp, "reference_iterations": ref_it, "models": models,
-               "scenes": scenes, "acceptance": verdict, "seconds": total}
-        write_json(args.json, doc, indent=1)
+        _write_doc(args.json, args.quick, ref_spp, ref_it, models, scenes, verdict, total)
     return 0
+
+
+def _write_doc(path: Path, quick: bool, ref_spp: int, ref_it: int, models: tuple[str, ...],
+               scenes: list[dict[str, Any]], verdict: dict[str, Any] | None, seconds: float) -> None:
+    """The run's JSON: every scene so far; ``acceptance`` None until the run's end (``--merge`` recomputes it)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write_json(path, {"quick": quick, "reference_spp": ref_spp, "reference_iterations": ref_it, "models": models,
+                      "scenes": scenes, "acceptance": verdict, "seconds": seconds, "complete": verdict is not None},
+               indent=1)
 
 
 if __name__ == "__main__":
