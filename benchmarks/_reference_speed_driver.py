@@ -9,7 +9,8 @@ KIND ``scene``: FOLDER/scene.toml through ``estimate_scene`` (``rig estimate sin
 ``model`` / ``reference_spp`` / ``reference_iterations`` / ``reference_seed`` from OPTIONS_JSON. KIND ``sphere``: the
 capture folder through ``estimate_capture(..., reference=OPTIONS_JSON["reference"])`` (``rig estimate gradients
 --reference``). Before the clock starts, the same estimate runs once at 2 spp and one render (``warm``: numba compiles
-or loads every kernel the timed run uses, so neither tree pays compilation in its timing). Prints one JSON line: wall
+or loads every kernel the timed run uses, so neither tree pays compilation in its timing; with OPTIONS_JSON
+``"lut": "cold"`` the LED response LUTs it built are then forgotten, see :func:`_forget_luts`). Prints one JSON line: wall
 and CPU seconds of the timed estimate (``time.perf_counter``, ``time.process_time``: this process, one numba thread),
 the CPU seconds inside the reference loop (``estimate_with_reference`` / ``reference_corrected_sphere``, wrapped
 wherever a module holds them) and the result (scene) or summary (sphere).
@@ -79,6 +80,18 @@ def _wrap_loops() -> None:
                     setattr(m, name, timed)
 
 
+def _forget_luts() -> None:
+    """``lut: "cold"``: drop the LED response LUTs the warm-up run built (the current tree keeps them in the process,
+    :mod:`rig.estimate.response_cache`; run with ``SSSRIG_LUT_CACHE=off`` so that none comes from disk either): the
+    timed run then builds its LUT and solve tables like the first capture on a rig. A no-op for trees without the
+    cache (the anchor builds its table in every estimate)."""
+    try:
+        from rig.estimate.response_cache import clear_memory_cache
+    except ImportError:
+        return
+    clear_memory_cache()
+
+
 def main() -> int:
     kind, folder, opts = sys.argv[1], Path(sys.argv[2]), json.loads(sys.argv[3])
     run = {"scene": _scene, "sphere": _sphere}[kind]
@@ -87,6 +100,8 @@ def main() -> int:
     if opts.get("warm", True):
         run(folder, opts, 2, 1)
     warm_s = time.perf_counter() - tw
+    if opts.get("lut") == "cold":
+        _forget_luts()
     _wrap_loops()
     t0, c0 = time.perf_counter(), time.process_time()
     res = run(folder, opts, spp, iterations)

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from ..fresnel import fresnel_moment, fresnel_transmittance
@@ -86,19 +87,6 @@ def _kernel_table(eta: float, n: int = 4097) -> tuple[Array, Array]:
     t = np.linspace(0.0, 1.0, n)
     k = fresnel_transmittance(eta, t) * t
     return k, np.append(np.diff(k), 0.0)
-
-
-def _kernel(cos: Array, kt: tuple[Array, Array]) -> Array:
-    """K(max(cos, 0)) by linear interpolation on the uniform table (much faster than np.interp)."""
-    table, slope = kt
-    n = table.size - 1
-    x = np.clip(cos, 0.0, 1.0)
-    x *= n
-    i = x.astype(np.intp)
-    x -= i
-    x *= slope[i]
-    x += table[i]
-    return x
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -277,35 +265,102 @@ class ResponseLUT:
         return (1 - fu) * (1 - fv) * a + fu * (1 - fv) * b + (1 - fu) * fv * cc + fu * fv * d
 
 
+@njit(cache=True, error_model="numpy")
+def _led_response_kernel(normals: Array, group: int, axes: Array, cos_min: float, dirs: Array, p: Array, p2: Array,
+                         cp: Array, d2: Array, near: bool, cc: float, radius: float, center: Array, table: Array,
+                         slope: Array, weights: Array, out: Array) -> None:  # pragma: no cover - numba
+    """out[i] = sum_j K(cos_ij) falloff_ij weights[j] (see :func:`_led_response`), a group of normals at a time.
+
+    Normals come in groups of ``group`` (rows g*group ... (g+1)*group - 1 around ``axes[g]``): only the LEDs with
+    axes[g].dirs[j] > ``cos_min`` are summed (the caller's bound: every other LED is behind all normals of the group).
+    Their data are gathered into contiguous arrays, the (group, LEDs) kernel matrix is filled without branches
+    (cos <= 0 gives K(0) = 0: the table K(t) = F_t t of :func:`_kernel_table`, interpolated linearly) and multiplied
+    by the gathered weights in one BLAS product."""
+    nt = table.size - 1
+    n_led = p.shape[0]
+    idx = np.empty(n_led, np.int64)
+    for g in range(axes.shape[0]):
+        cnt = 0
+        for j in range(n_led):
+            if axes[g, 0] * dirs[j, 0] + axes[g, 1] * dirs[j, 1] + axes[g, 2] * dirs[j, 2] > cos_min:
+                idx[cnt] = j
+                cnt += 1
+        i0 = g * group
+        i1 = min(i0 + group, normals.shape[0])
+        if i1 <= i0:
+            continue
+        if cnt == 0:
+            out[i0:i1] = 0.0
+            continue
+        px, py, pz = np.empty(cnt), np.empty(cnt), np.empty(cnt)
+        g2, gc, gd = np.empty(cnt), np.empty(cnt), np.empty(cnt)
+        w = np.empty((cnt, weights.shape[1]))
+        for t in range(cnt):
+            j = idx[t]
+            px[t], py[t], pz[t] = p[j, 0], p[j, 1], p[j, 2]
+            g2[t], gc[t], gd[t] = p2[j], cp[j], d2[j]
+            w[t] = weights[j]
+        k = np.empty((i1 - i0, cnt))
+        xs = np.empty(cnt)
+        fall = np.ones(cnt)
+        for i in range(i0, i1):
+            n0, n1, n2 = normals[i, 0], normals[i, 1], normals[i, 2]
+            if near:
+                cn = n0 * center[0] + n1 * center[1] + n2 * center[2]
+                const = cc + 2.0 * radius * cn + radius * radius
+                off = cn + radius
+                for t in range(cnt):  # branch-free: vectorized
+                    q = n0 * px[t] + n1 * py[t] + n2 * pz[t]
+                    dist2 = g2[t] - 2.0 * (gc[t] + radius * q) + const
+                    xs[t] = (q - off) / np.sqrt(dist2)
+                    fall[t] = gd[t] / dist2
+            else:
+                for t in range(cnt):
+                    xs[t] = n0 * px[t] + n1 * py[t] + n2 * pz[t]
+            for t in range(cnt):
+                x = min(max(xs[t], 0.0), 1.0) * nt
+                m = int(x)
+                x -= m
+                k[i - i0, t] = (x * slope[m] + table[m]) * fall[t]
+        out[i0:i1] = k @ w
+
+
 def _led_response(normals: Array, leds: LedRig, weights: Array, kt: tuple[Array, Array],
-                  center: Array, radius: float) -> Array:
+                  center: Array, radius: float, *, group: int = 1, axes: Array | None = None,
+                  spread_rad: float = 0.0) -> Array:
     """E (M, P*3) = sum_j K(cos_j(n)) * falloff_j(n) * weights[j] for unit normals (M, 3).
 
     Near field (``leds.distances_mm``): LED j at p_j, surface point x = c + r n, so with q_j = n.p_j:
-    |p_j - x|^2 = |p_j|^2 - 2 (c.p_j + r q_j) + |c|^2 + 2 r c.n + r^2 and (p_j - x).n = q_j - c.n - r: one
-    (M, N) product per block, formed elementwise (tiny inner dimension: no BLAS call overhead)."""
-    out = np.empty((normals.shape[0], weights.shape[1]))
+    |p_j - x|^2 = |p_j|^2 - 2 (c.p_j + r q_j) + |c|^2 + 2 r c.n + r^2 and (p_j - x).n = q_j - c.n - r, K and
+    1/d^2 evaluated per (normal, LED) pair in one numba loop (:func:`_led_response_kernel`; the numpy form of
+    (M, N) arrays and a BLAS product took ~2.4-4.5 CPU s for the 343-LED LUT, issue 19).
+
+    Culling (exact: it drops only terms that are 0): normals in consecutive groups of ``group`` lie within
+    ``spread_rad`` of ``axes`` (M // group, 3); an LED more than 90 deg + spread + asin(|x|max / d_min) + 0.01 rad from
+    the axis is behind every normal of the group.
+    """
+    normals = np.ascontiguousarray(normals, dtype=np.float64)
     near = leds.distances_mm is not None
-    p = (leds.distances_mm[:, None] if near else 1.0) * leds.directions  # (N, 3)
-    if near:
-        p2 = np.einsum("jk,jk->j", p, p)[None, :]
-        cp = (p @ center)[None, :]
-        d2 = (leds.distances_mm ** 2)[None, :]
-    step = 2048
-    for s in range(0, normals.shape[0], step):
-        n = normals[s:s + step]
-        q = n[:, 0:1] * p[:, 0] + n[:, 1:2] * p[:, 1] + n[:, 2:3] * p[:, 2]  # (m, N)
-        if not near:
-            k = _kernel(q, kt)
-        else:
-            cn = (n @ center)[:, None]
-            dist2 = p2 - 2.0 * (cp + radius * q) + (center @ center + 2.0 * radius * cn + radius * radius)
-            q -= cn + radius
-            q /= np.sqrt(dist2)
-            k = _kernel(q, kt)
-            k *= d2
-            k /= dist2
-        out[s:s + step] = k @ weights
+    p = np.ascontiguousarray((leds.distances_mm[:, None] if near else 1.0) * leds.directions)  # (N, 3)
+    center = np.ascontiguousarray(center, dtype=np.float64).reshape(3)
+    p2 = np.einsum("jk,jk->j", p, p)
+    cp = p @ center
+    d2 = leds.distances_mm ** 2 if near else np.ones(p.shape[0])
+    if axes is None:
+        group, axes, cos_min = 1, normals, -2.0
+    else:
+        reach = float(np.linalg.norm(center)) + abs(float(radius)) if near else 0.0
+        dmin = float(leds.distances_mm.min()) if near else 1.0
+        bound = spread_rad + (np.arcsin(reach / dmin) if reach < dmin else np.pi) + 0.01
+        cos_min = -np.sin(bound) if bound < 0.5 * np.pi else -2.0
+    if axes.shape[0] * group < normals.shape[0]:
+        raise ValueError("axes must cover every group of normals")
+    out = np.empty((normals.shape[0], weights.shape[1]))
+    if not near:
+        center, radius = np.zeros(3), 0.0
+    _led_response_kernel(normals, int(group), np.ascontiguousarray(axes, dtype=np.float64), float(cos_min),
+                         leds.directions, p, p2, cp, d2, near, float(center @ center), float(radius), center, kt[0],
+                         kt[1], np.ascontiguousarray(weights, dtype=np.float64), out)
     return out
 
 
@@ -333,6 +388,9 @@ def build_response_lut(leds: LedRig, *, eta: float = 1.3, size: int = 65, smooth
         raise ValueError("smoothing_rad must lie in [0.01, 0.6] rad")
     pats = tuple(p for p in GRADIENT_PATTERNS)
     wts = np.concatenate([leds.gains * leds.pattern_values(p) for p in pats], axis=1)  # (N, P*3)
+    # identical columns (grey gains and patterns: 7 of 21) are summed once, then copied
+    wts_unique, col_of = np.unique(wts, axis=1, return_inverse=True)
+    col_of = col_of.reshape(-1)
     kt = _kernel_table(eta)
     center = np.asarray(surface_center_mm, dtype=np.float64).reshape(3)
     nref = np.asarray(reference_normal, dtype=np.float64).reshape(1, 3)
@@ -349,19 +407,19 @@ def build_response_lut(leds: LedRig, *, eta: float = 1.3, size: int = 65, smooth
     coeffs = np.empty((nodes.shape[0], len(pats), 3, 4))
     resid = np.empty((nodes.shape[0], len(pats), 3))
     sw = np.sqrt(qw)
-    for s in range(0, nodes.shape[0], 64):
-        n0, a1, a2 = nodes[s:s + 64], e1[s:s + 64], e2[s:s + 64]
+    # weighted LS in a local frame (1, n.n0 - c0, n.e1, n.e2) for conditioning, then mapped back
+    c0 = float(np.sum(qw * np.cos(th)))
+    X = np.stack([np.ones_like(th), np.cos(th) - c0, np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph)], 1)
+    pinv = np.linalg.pinv(X * sw[:, None])  # (4, Q): same stencil at every node
+    for s in range(0, nodes.shape[0], 256):
+        n0, a1, a2 = nodes[s:s + 256], e1[s:s + 256], e2[s:s + 256]
         q = (np.cos(th)[None, :, None] * n0[:, None, :]
              + (np.sin(th) * np.cos(ph))[None, :, None] * a1[:, None, :]
              + (np.sin(th) * np.sin(ph))[None, :, None] * a2[:, None, :])  # (m, Q, 3)
         m, nq = q.shape[:2]
-        e = _led_response(q.reshape(-1, 3), leds, wts, kt, center, float(surface_radius_mm))
+        e = _led_response(q.reshape(-1, 3), leds, wts_unique, kt, center, float(surface_radius_mm), group=nq,
+                          axes=n0, spread_rad=float(th.max()))[:, col_of]
         e = e.reshape(m, nq, len(pats), 3) / ref[None, None, None, :]
-        # weighted LS in a local frame (1, n.n0 - c0, n.e1, n.e2) for conditioning, then mapped back
-        c0 = float(np.sum(qw * np.cos(th)))
-        X = np.stack([np.ones_like(th), np.cos(th) - c0, np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph)], 1)
-        Xw = X * sw[:, None]
-        pinv = np.linalg.pinv(Xw)  # (4, Q): same stencil at every node
         y = e * sw[None, :, None, None]
         beta = np.einsum("kq,mqpc->mpck", pinv, y)  # local coefficients
         fit = np.einsum("qk,mpck->mqpc", X, beta)
@@ -457,6 +515,62 @@ def _lanes(a: Array) -> NDArray[np.complex128]:
     return out.view(np.complex128)[..., 0]
 
 
+@njit(cache=True, error_model="numpy")
+def _solve_kernel(A: Array, G: Array, N: Array) -> None:  # pragma: no cover - numba
+    """Per node and channel of A (m, 3, P, 4): G = (A^T A)^-1 A^T (m, 3, 4, P) by Gaussian elimination with partial
+    pivoting (NaN where |det A^T A| <= 1e-300), N = the upper triangle of A^T A, off-diagonals twice (m, 3, 10)."""
+    P = A.shape[2]
+    M = np.empty((4, 4))
+    R = np.empty((4, P))
+    for i in range(A.shape[0]):
+        for c in range(A.shape[1]):
+            for a in range(4):
+                for b in range(4):
+                    acc = 0.0
+                    for p in range(P):
+                        acc += A[i, c, p, a] * A[i, c, p, b]
+                    M[a, b] = acc
+                for p in range(P):
+                    R[a, p] = A[i, c, p, a]
+            t = 0
+            for a in range(4):
+                for b in range(a, 4):
+                    N[i, c, t] = M[a, b] if a == b else 2.0 * M[a, b]
+                    t += 1
+            det = 1.0
+            for k in range(4):
+                piv = k
+                for r in range(k + 1, 4):
+                    if abs(M[r, k]) > abs(M[piv, k]):
+                        piv = r
+                if piv != k:
+                    det = -det
+                    for b in range(4):
+                        M[k, b], M[piv, b] = M[piv, b], M[k, b]
+                    for p in range(P):
+                        R[k, p], R[piv, p] = R[piv, p], R[k, p]
+                det *= M[k, k]
+                if M[k, k] == 0.0:
+                    break
+                for r in range(k + 1, 4):
+                    f = M[r, k] / M[k, k]
+                    for b in range(k, 4):
+                        M[r, b] -= f * M[k, b]
+                    for p in range(P):
+                        R[r, p] -= f * R[k, p]
+            if not abs(det) > 1e-300:
+                for a in range(4):
+                    for p in range(P):
+                        G[i, c, a, p] = np.nan
+                continue
+            for k in range(3, -1, -1):
+                for p in range(P):
+                    acc = R[k, p]
+                    for b in range(k + 1, 4):
+                        acc -= M[k, b] * G[i, c, b, p]
+                    G[i, c, k, p] = acc / M[k, k]
+
+
 def _solve_table(lut: ResponseLUT, rows: tuple[int, ...]) -> _SolveTable:
     """Build (once per LUT and pattern subset) the fine table of G(n) = pinv(A(n)), A from :meth:`ResponseLUT.affine`.
 
@@ -475,14 +589,9 @@ def _solve_table(lut: ResponseLUT, rows: tuple[int, ...]) -> _SolveTable:
     P = len(rows)
     G = np.empty((size * size, 3, 4, P))
     N = np.empty((size * size, 3, 10))
-    iu = np.triu_indices(4)
     for s in range(0, nodes.shape[0], 8192):
-        A = np.moveaxis(lut.affine(nodes[s:s + 8192])[:, list(rows)], 2, 1)  # (m, 3, P, 4)
-        AtA = np.einsum("mcpi,mcpj->mcij", A, A)
-        ok = np.abs(np.linalg.det(AtA)) > 1e-300
-        inv = np.linalg.inv(np.where(ok[..., None, None], AtA, np.eye(4)))
-        G[s:s + 8192] = np.where(ok[..., None, None], np.einsum("mcij,mcpj->mcip", inv, A), np.nan)
-        N[s:s + 8192] = AtA[..., iu[0], iu[1]] * np.where(iu[0] == iu[1], 1.0, 2.0)  # off-diagonals twice
+        A = np.ascontiguousarray(np.moveaxis(lut.affine(nodes[s:s + 8192])[:, list(rows)], 2, 1))  # (m, 3, P, 4)
+        _solve_kernel(A, G[s:s + 8192], N[s:s + 8192])
     table = _SolveTable(size, P, _lanes(G.reshape(-1, 3, 4 * P)), _lanes(N) if P > 4 else None)
     lut._solve_tables[rows] = table
     return table
