@@ -411,6 +411,7 @@ def build_response_lut(leds: LedRig, *, eta: float = 1.3, size: int = 65, smooth
     c0 = float(np.sum(qw * np.cos(th)))
     X = np.stack([np.ones_like(th), np.cos(th) - c0, np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph)], 1)
     pinv = np.linalg.pinv(X * sw[:, None])  # (4, Q): same stencil at every node
+    ref_cols = np.tile(ref, len(pats))  # column p*3 + c of the weights: pattern p, channel c
     for s in range(0, nodes.shape[0], 256):
         n0, a1, a2 = nodes[s:s + 256], e1[s:s + 256], e2[s:s + 256]
         q = (np.cos(th)[None, :, None] * n0[:, None, :]
@@ -419,13 +420,12 @@ def build_response_lut(leds: LedRig, *, eta: float = 1.3, size: int = 65, smooth
         m, nq = q.shape[:2]
         e = _led_response(q.reshape(-1, 3), leds, wts_unique, kt, center, float(surface_radius_mm), group=nq,
                           axes=n0, spread_rad=float(th.max()))[:, col_of]
-        e = e.reshape(m, nq, len(pats), 3) / ref[None, None, None, :]
-        y = e * sw[None, :, None, None]
-        beta = np.einsum("kq,mqpc->mpck", pinv, y)  # local coefficients
-        fit = np.einsum("qk,mpck->mqpc", X, beta)
-        rms = np.sqrt(np.einsum("q,mqpc->mpc", qw, (fit - e) ** 2))
-        scale = np.sqrt(np.einsum("q,mqpc->mpc", qw, e * e))
-        resid[s:s + m] = np.where(scale > 0, rms / np.where(scale > 0, scale, 1.0), 0.0)
+        e = e.reshape(m, nq, len(pats) * 3) / ref_cols  # (m, Q, P*3)
+        beta_w = pinv @ (e * sw[:, None])  # (m, 4, P*3): local coefficients
+        rms = np.sqrt(qw @ (X @ beta_w - e) ** 2)
+        scale = np.sqrt(qw @ (e * e))
+        resid[s:s + m] = np.where(scale > 0, rms / np.where(scale > 0, scale, 1.0), 0.0).reshape(m, len(pats), 3)
+        beta = beta_w.transpose(0, 2, 1).reshape(m, len(pats), 3, 4)
         # a + b.n with b = b0 n0 + b1 e1 + b2 e2 and a = beta0 - b0 c0
         b = (beta[..., 1, None] * n0[:, None, None, :] + beta[..., 2, None] * a1[:, None, None, :]
              + beta[..., 3, None] * a2[:, None, None, :])
