@@ -10,8 +10,8 @@ KIND ``scene``: FOLDER/scene.toml through ``estimate_scene`` (``rig estimate sin
 capture folder through ``estimate_capture(..., reference=OPTIONS_JSON["reference"])`` (``rig estimate gradients
 --reference``). Before the clock starts, the same estimate runs once at 2 spp and one render (``warm``: numba compiles
 or loads every kernel the timed run uses, so neither tree pays compilation in its timing; with OPTIONS_JSON
-``"lut": "cold"`` the LED response LUTs it built are then forgotten, see :func:`_forget_luts`). Prints one JSON line: wall
-and CPU seconds of the timed estimate (``time.perf_counter``, ``time.process_time``: this process, one numba thread),
+``"lut": "cold"`` the LED response LUTs it built are then forgotten, see :func:`_forget_luts`). Prints one JSON line:
+wall and CPU seconds of the timed estimate (``time.perf_counter``, ``time.process_time``: this process, one numba thread),
 the CPU seconds inside the reference loop (``estimate_with_reference`` / ``reference_corrected_sphere``, wrapped
 wherever a module holds them) and the result (scene) or summary (sphere).
 """

@@ -26,6 +26,11 @@ current zoo rules / gradients_acceptance rows for both; then the ratio anchor / 
 number, wall beside it) and "same accuracy" (both within 10 % of the truth, or the current error no larger than the
 anchor's plus the current interval's half-width, channel by channel; every status the same or better).
 
+The sphere's current tree runs twice (branch lut19): ``cold`` (``SSSRIG_LUT_CACHE=off`` and the LED response LUT of
+the warm-up forgotten, so the timed estimate builds its LUT and solve tables: the first capture on a new LED layout)
+and ``current`` (the LUT of the warm-up reused: a later capture of the same layout); ratio and "same accuracy" are
+printed for both (JSON keys ``*_cold`` and the plain ones).
+
 Run: ``NUMBA_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 nice python benchmarks/reference_speed.py [--skip-scene]
 [--skip-sphere] [--trees anchor,current] [--json OUT]``. The machine is shared: the trees run back to back, and CPU
 seconds (one numba thread) are the load-independent number.
@@ -216,9 +221,10 @@ def main(argv: list[str] | None = None) -> int:
             ratio_loop = a["loop_cpu_seconds"] / c["loop_cpu_seconds"]
             same = same_accuracy(rows["anchor"], rows[cur])
             sfx = "_cold" if cur == "cold" else ""
-            entry.update({f"ratio_cpu{sfx}": ratio, f"ratio_wall{sfx}": ratio_wall, f"ratio_loop_cpu{sfx}": ratio_loop,
-                          f"same_accuracy{sfx}": same})
-            what = {"cold": "current, LUT cold", "current": "current, LUT warm" if kind == "sphere" else "current"}[cur]
+            entry.update({f"ratio_cpu{sfx}": ratio, f"ratio_wall{sfx}": ratio_wall,
+                          f"ratio_loop_cpu{sfx}": ratio_loop, f"same_accuracy{sfx}": same})
+            what = {"cold": "current, LUT cold",
+                    "current": "current, LUT warm" if kind == "sphere" else "current"}[cur]
             print(f"  RATIO anchor / {what}: whole estimate CPU {a['cpu_seconds']:.1f} / {c['cpu_seconds']:.1f} s = "
                   f"{ratio:.2f}x (target >= 3: {'PASS' if ratio >= 3 else 'FAIL'}), wall {ratio_wall:.2f}x; reference "
                   f"loop CPU {a['loop_cpu_seconds']:.1f} / {c['loop_cpu_seconds']:.1f} s = {ratio_loop:.2f}x (target "

@@ -1,20 +1,22 @@
 """The LED rig's response LUT, built once per LED layout (issue 19): in this process and on disk, keyed by content.
 
-:func:`estimation.gradients.build_response_lut` costs ~4.5 CPU s for a 343-LED rig (65 x 65 nodes x 64 stencil
-normals x 343 LEDs, near field; measured on the 5 mm sphere capture of ``benchmarks/reference_speed.py``), ~30 % of
-a whole ``rig estimate gradients --reference`` on a 32-px capture. It depends only on the LED calibration (directions,
+:func:`estimation.gradients.build_response_lut` costs ~0.25-0.3 CPU s for a 343-LED rig (65 x 65 nodes x 64 stencil
+normals x 343 LEDs, near field; the 5 mm sphere capture of ``benchmarks/reference_speed.py``, load ~4; numba since
+branch lut19, it was 1.6-2.6 s at load ~4 and 4.5-5.3 s at load 7-12 in numpy), its solve table for four patterns
+~0.1 s (was 0.3-0.4 s): with both the first capture on a rig is now within the run-to-run noise of a cached one
+(docs/model-error.md, issue 19 line 2). The table depends only on the LED calibration (directions,
 gains, distances, displayed drive values), eta, the reference normal, the surface model (centre, radius), the table
 size and smoothing, and the code that builds it. :func:`response_lut` keys the table by the SHA-256 of all of these
 (the code as the source text of :mod:`estimation.gradients.response`) and returns
 
 1. the same :class:`~estimation.gradients.ResponseLUT` object again within a process (its per-pattern solve tables,
-   :func:`estimation.gradients.response._solve_table`, ~0.7 s, come along), else
+   :func:`estimation.gradients.response._solve_table`, ~0.1 s, come along), else
 2. the table stored under ``$SSSRIG_LUT_CACHE`` (default ``$XDG_CACHE_HOME/sssrig/response-lut``, ``~/.cache``
    when unset) as ``<key>.npz`` (float64 arrays, so the loaded table is bit-identical to a fresh build), else
 3. a fresh build, then stored (atomically; an unwritable cache folder only costs the next process a rebuild).
 
 ``SSSRIG_LUT_CACHE=off`` (or ``0``, ``none``) disables the disk cache (the in-process one stays). A studio's sessions
-share one LED layout, so every capture after the first pays ~0.05 s instead of the build.
+share one LED layout, so every capture after the first pays ~0.01-0.05 s instead of the build.
 """
 from __future__ import annotations
 
