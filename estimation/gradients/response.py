@@ -333,11 +333,11 @@ def _led_response(normals: Array, leds: LedRig, weights: Array, kt: tuple[Array,
     Near field (``leds.distances_mm``): LED j at p_j, surface point x = c + r n, so with q_j = n.p_j:
     |p_j - x|^2 = |p_j|^2 - 2 (c.p_j + r q_j) + |c|^2 + 2 r c.n + r^2 and (p_j - x).n = q_j - c.n - r, K and
     1/d^2 evaluated per (normal, LED) pair in one numba loop (:func:`_led_response_kernel`; the numpy form of
-    (M, N) arrays and a BLAS product took ~2.4-4.5 CPU s for the 343-LED LUT, issue 19).
+    (M, N) arrays and a BLAS product took 1.6-5.3 CPU s for the 343-LED LUT at load 4-12, this one ~0.2 s, issue 19).
 
     Culling (exact: it drops only terms that are 0): normals in consecutive groups of ``group`` lie within
-    ``spread_rad`` of ``axes`` (M // group, 3); an LED more than 90 deg + spread + asin(|x|max / d_min) + 0.01 rad from
-    the axis is behind every normal of the group.
+    ``spread_rad`` of ``axes`` (ceil(M / group), 3); an LED more than 90 deg + spread + asin(|x|max / d_min) + 0.01
+    rad from the axis (|x|max = |c| + r) is behind every normal of the group. Without ``axes``: no culling.
     """
     normals = np.ascontiguousarray(normals, dtype=np.float64)
     near = leds.distances_mm is not None
@@ -346,8 +346,8 @@ def _led_response(normals: Array, leds: LedRig, weights: Array, kt: tuple[Array,
     p2 = np.einsum("jk,jk->j", p, p)
     cp = p @ center
     d2 = leds.distances_mm ** 2 if near else np.ones(p.shape[0])
-    if axes is None:
-        group, axes, cos_min = 1, normals, -2.0
+    if axes is None:  # no culling: any axis per group of 256
+        group, axes, cos_min = 256, normals[::256], -2.0
     else:
         reach = float(np.linalg.norm(center)) + abs(float(radius)) if near else 0.0
         dmin = float(leds.distances_mm.min()) if near else 1.0
