@@ -318,7 +318,12 @@ def _led_response_kernel(normals: Array, group: int, axes: Array, cos_min: float
                 for t in range(cnt):
                     xs[t] = n0 * px[t] + n1 * py[t] + n2 * pz[t]
             for t in range(cnt):
-                x = min(max(xs[t], 0.0), 1.0) * nt
+                x = xs[t]
+                if not x > 0.0:  # behind (K(0) = 0), or NaN where an LED sits inside the surface model
+                    x = 0.0
+                elif x > 1.0:
+                    x = 1.0
+                x *= nt
                 m = int(x)
                 x -= m
                 k[i - i0, t] = (x * slope[m] + table[m]) * fall[t]
