@@ -67,6 +67,7 @@ Where no channel converged within the budget and the plain fit lies on the ridge
 sun-lit bodies), the estimate moves to the minimum of the renders' own profile objective along that ridge
 (:func:`estimation.ridge_scan.ridge_line_search`, 3-6 renders of ``refine_reference`` at more spp): there the
 likelihood is nearly flat and a slope error of the corrected model moves its fixed point far (the zoo's z02: +13 %).
+It moves only where the gain beats the renders' own noise (its significance gate); else the loop's point stays.
 
 Never confident and wrong: every result carries ``extra["status"]`` per parameter and channel — "ok" only when the
 iteration converged and the interval is finite and narrower than :data:`MAX_OK_INTERVAL_RATIO` (sigma_s') or
@@ -345,7 +346,7 @@ def estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, ligh
     the cheapest whose noise is at most :data:`RENDER_NOISE_FRACTION` of the plain fit's); when no channel has
     converged within ``max_iterations`` renders, the estimate moves to the minimum of its renders' profile objective
     along the ridge of constant albedo (:func:`estimation.ridge_scan.ridge_line_search`, 3-6 renders;
-    ``extra["ridge_line_search"]``), still weak, its intervals stretched over the move. Returns the last accepted refit with
+    ``extra["ridge_line_search"]``; only where its gain is significant against the renders' noise), still weak, its intervals stretched over the move. Returns the last accepted refit with
     ``model`` ``"<base_model>+reference"``, ``extra["reference"]`` (every step: the point rendered, the refit, rho,
     the trust radius, the correction's statistics, seconds), ``extra["converged"]`` (per channel in
     ``extra["converged_per_channel"]``), ``extra["status"]`` / ``["status_reasons"]`` (:func:`parameter_status`),
