@@ -38,7 +38,7 @@ from .single_image import SingleImageResult
 
 __all__ = ["MAX_DELTA_LOG_SA", "RIDGE_CORRELATION", "EDGE_FACTOR", "SCAN_RATIO", "SCAN_STEPS", "SCAN_EXTEND",
            "LINE_STEP_LOG", "LINE_EXTEND", "LINE_SIGNIFICANCE", "line_gain_threshold", "profile_chi2", "profile_objective", "ridge_channels", "scan_ridge",
-           "on_the_ridge", "ridge_line_search"]
+           "on_the_ridge", "ridge_line_search", "paired_gain_sd"]
 
 Array = NDArray[np.float64]
 
@@ -95,6 +95,24 @@ def profile_chi2(r: Array, d: Array, w: Array, max_delta: float = MAX_DELTA_LOG_
     return c0, float(np.sum(w * (r - delta * d) ** 2)), delta
 
 
+def _profile_residuals(q: Array, dq: Array | None, obs: Array, metric: Array, c: int
+                       ) -> tuple[Array, float] | None:
+    """Channel ``c``'s normalized residuals z (m,; NaN where unusable) after the first-order sigma_a refit (Huber
+    weights of the render's residuals) and that delta log sigma_a; None with fewer than 3 usable rows."""
+    r = obs[:, c] - q[:, c]
+    m = metric[:, c]
+    d_c = dq[:, c, 1] if dq is not None else np.zeros(q.shape[0])
+    ok = np.isfinite(r) & np.isfinite(m) & (m > 0) & np.isfinite(d_c)
+    if ok.sum() < 3:
+        return None
+    az = np.abs(r[ok] / m[ok])
+    huber_w = np.where(az > _HUBER_K, _HUBER_K / np.where(az > 0, az, 1.0), 1.0)
+    _, _, dl = profile_chi2(r[ok], d_c[ok], huber_w / m[ok] ** 2)
+    z = np.full(q.shape[0], np.nan)
+    z[ok] = (r[ok] - dl * d_c[ok]) / m[ok]
+    return z, dl
+
+
 def profile_objective(q: Array, se: Array, dq: Array | None, obs: Array, metric: Array, c: int
                       ) -> tuple[float, float, float]:
     """Channel ``c``'s robust objective of a render ``q`` (m, C) against ``obs`` in the loop's ``metric`` (m, C),
@@ -106,19 +124,34 @@ def profile_objective(q: Array, se: Array, dq: Array | None, obs: Array, metric:
     over the render's independent pixels: d objective / d q_i = -psi(z_i) / m_i (psi the Huber derivative, z_i the
     normalized residual; the sigma_a refit adds nothing to first order, the objective being stationary in it), so
     var = sum (psi(z_i) se_i / m_i)^2 with ``se`` the render's per-pixel standard errors."""
-    r = obs[:, c] - q[:, c]
-    m = metric[:, c]
-    d_c = dq[:, c, 1] if dq is not None else np.zeros(q.shape[0])
-    ok = np.isfinite(r) & np.isfinite(m) & (m > 0) & np.isfinite(d_c)
-    if ok.sum() < 3:
+    res = _profile_residuals(q, dq, obs, metric, c)
+    if res is None:
         return np.inf, 0.0, np.inf
-    az = np.abs(r[ok] / m[ok])
-    huber_w = np.where(az > _HUBER_K, _HUBER_K / np.where(az > 0, az, 1.0), 1.0)
-    _, _, dl = profile_chi2(r[ok], d_c[ok], huber_w / m[ok] ** 2)
-    z = (r[ok] - dl * d_c[ok]) / m[ok]
+    z, dl = res
+    ok = np.isfinite(z)
     se_c = np.where(np.isfinite(se[ok, c]), se[ok, c], 0.0)
-    sd = float(np.sqrt(np.sum((np.clip(z, -_HUBER_K, _HUBER_K) * se_c / m[ok]) ** 2)))
-    return float(_huber_sum(z[:, None], _HUBER_K)[0]), dl, sd
+    sd = float(np.sqrt(np.sum((np.clip(z[ok], -_HUBER_K, _HUBER_K) * se_c / metric[ok, c]) ** 2)))
+    return float(_huber_sum(z[ok][:, None], _HUBER_K)[0]), dl, sd
+
+
+def paired_gain_sd(a0: tuple[Array, Array | None], ab: tuple[Array, Array | None], b0: Array, bb: Array,
+                   obs: Array, metric: Array, c: int) -> float:
+    """The standard deviation of one seed's gain J(0) - J(b), measured from two seeds' renders of both points:
+    ``a0``, ``ab`` = (radiance (m, C), d radiance or None) of seed A at the loop's point and at point b, ``b0``,
+    ``bb`` seed B's radiances there. To first order the gain's noise is sum_i g0_i e0_i - gb_i eb_i (g = -psi(z) / m
+    the objective's derivative at seed A's renders, e a render's noise; the renders of one seed share their paths, so
+    e0 and eb are correlated: common random numbers), and over independent pixels its variance is
+    sum_i (u_i(A) - u_i(B))^2 / 2 with u_i = g0_i q0_i - gb_i qb_i: the correlation included, no standard error
+    assumed. NaN with fewer than 3 usable rows."""
+    g = []
+    for q, dq in (a0, ab):
+        res = _profile_residuals(q, dq, obs, metric, c)
+        if res is None:
+            return float("nan")
+        g.append(-np.clip(res[0], -_HUBER_K, _HUBER_K) / metric[:, c])
+    du = g[0] * (a0[0][:, c] - b0[:, c]) - g[1] * (ab[0][:, c] - bb[:, c])
+    du = du[np.isfinite(du)]
+    return float(np.sqrt(np.sum(du * du) / 2.0)) if du.size >= 3 else float("nan")
 
 
 def line_gain_threshold(n_compared: int, level: float = LINE_SIGNIFICANCE) -> float:
@@ -132,7 +165,9 @@ def line_gain_threshold(n_compared: int, level: float = LINE_SIGNIFICANCE) -> fl
 
 def ridge_line_search(render: Callable[[Array], tuple[Array, Array, Array | None, float]], obs: Array,
                       metric: Callable[[Array, Array], Array], theta: Array, channels: NDArray[np.bool_],
-                      step_log: float = LINE_STEP_LOG, extend: int = LINE_EXTEND) -> tuple[Array, dict[str, Any]]:
+                      step_log: float = LINE_STEP_LOG, extend: int = LINE_EXTEND,
+                      render_check: Callable[[Array], tuple[Array, Array, Array | None, float]] | None = None
+                      ) -> tuple[Array, dict[str, Any]]:
     """The profile objective along the ridge of constant albedo through ``theta`` (C, 2), minimised on renders.
 
     Renders (one seed: common random numbers) at log sigma_s' = theta + k ``step_log``, log sigma_a shifted alike
@@ -146,16 +181,25 @@ def ridge_line_search(render: Callable[[Array], tuple[Array, Array, Array | None
     ``metric`` as for :func:`scan_ridge`, the metric evaluated once, on the first render (k = 0), and used for all.
 
     The significance gate (issue 15: on a 32-spp frame, z19, the search moved +0.3 % -> +12.5 % on a gain of 9.6 in
-    a jagged, flat profile): a channel moves only where its best point's gain over the loop's point (k = 0) exceeds
-    :func:`line_gain_threshold` (the number of other points compared) times the gain's standard deviation from the
-    renders' noise, sqrt(sd_0^2 + sd_best^2) (:func:`profile_objective`'s delta method; the renders share one seed,
-    whose positive correlation makes the true spread smaller: this is its bound for independent renders). Else it
-    keeps ``theta``. Returns the new point (``theta`` where ``channels`` is False or the gate says no) and a record
-    (per channel ``gain``, ``gain_sd``, ``gain_threshold_sd``, ``moved``)."""
+    a jagged, flat profile; docs/model-error.md, "A significance gate for the ridge line search"). A channel moves
+    only where its best point b beats the loop's point (k = 0) significantly:
+
+    - with ``render_check`` (the same renderer with another seed): b is chosen on ``render``'s renders and tested on
+      two more, ``render_check``'s at k = 0 and b (sample splitting, Cox 1975, Biometrika 62(2): the test's gain is
+      not biased by the choice): that gain must exceed :func:`line_gain_threshold` (1) = 1.64 times its standard
+      deviation measured from the two seeds' renders (:func:`paired_gain_sd`, common random numbers included);
+    - without: the search's own gain must exceed :func:`line_gain_threshold` (the number of other points compared)
+      times sqrt(sd_0^2 + sd_b^2) (:func:`profile_objective`'s delta method; a bound for the renders' shared seed,
+      whose positive correlation makes the true spread smaller: measured on z11 2-3x).
+
+    Else it keeps ``theta``. Returns the new point (``theta`` where ``channels`` is False or the gate says no) and a
+    record (per channel ``gain``, ``gain_check``, ``gain_sd``, ``gain_threshold_sd``, ``moved``).
+    """
     n_ch = theta.shape[0]
     rec: list[dict[int, tuple[float, float, float]]] = [{} for _ in range(n_ch)]
     seconds: list[float] = []
     fixed: list[Array] = []  # one metric for every render: the first's (a render's own would favour brighter ones)
+    kept: list[dict[int, tuple[Array, Array | None]]] = [{} for _ in range(n_ch)]  # (radiance, d) per point
 
     def pt(c: int, k: float) -> Array:
         return theta[c] + k * step_log
@@ -169,6 +213,7 @@ def ridge_line_search(render: Callable[[Array], tuple[Array, Array, Array | None
         for c, k in enumerate(todo):
             if k is not None:
                 rec[c][k] = profile_objective(q, se, dq, obs, m, c)
+                kept[c][k] = (q, dq)
 
     for k in (0, -1, 1):
         run([k if channels[c] else None for c in range(n_ch)])
@@ -185,19 +230,43 @@ def ridge_line_search(render: Callable[[Array], tuple[Array, Array, Array | None
     out = theta.copy()
     vertex: list[float | None] = [None] * n_ch
     gain: list[float | None] = [None] * n_ch
+    gain_check: list[float | None] = [None] * n_ch
     gain_sd: list[float | None] = [None] * n_ch
     z_gate: list[float | None] = [None] * n_ch
     moved = [False] * n_ch
+    bests: list[int | None] = [None] * n_ch
     for c in range(n_ch):
-        if not rec[c]:
+        if rec[c] and 0 in rec[c]:
+            best = min(rec[c], key=lambda k: rec[c][k][0])
+            if np.isfinite(rec[c][best][0]) and best != 0:
+                bests[c] = best
+                gain[c] = float(rec[c][0][0] - rec[c][best][0])
+    check_seconds: list[float] = []
+    if render_check is not None and any(b is not None for b in bests):  # the candidates tested on another seed
+        checked = []
+        for todo in ([0 if b is not None else None for b in bests], bests):
+            q, se, dq, sec = _render_points(render_check, theta, todo, pt)
+            check_seconds.append(sec)
+            checked.append((q, se, dq))
+        for c, b in enumerate(bests):
+            if b is None:
+                continue
+            m = fixed[0]
+            gain_check[c] = float(profile_objective(*checked[0], obs, m, c)[0]
+                                  - profile_objective(*checked[1], obs, m, c)[0])
+            gain_sd[c] = paired_gain_sd(kept[c][0], kept[c][b], checked[0][0], checked[1][0], obs, m, c)
+            z_gate[c] = line_gain_threshold(1)
+    for c in range(n_ch):
+        best = bests[c]
+        if best is None:
             continue
-        best = min(rec[c], key=lambda k: rec[c][k][0])
-        if not np.isfinite(rec[c][best][0]) or 0 not in rec[c]:
-            continue
-        gain[c] = float(rec[c][0][0] - rec[c][best][0])
-        gain_sd[c] = float(np.hypot(rec[c][0][2], rec[c][best][2]))
-        z_gate[c] = line_gain_threshold(max(len(rec[c]) - 1, 1))
-        if best == 0 or not gain[c] > z_gate[c] * gain_sd[c]:  # not clearly better than the loop's point: keep it
+        if render_check is None:
+            gain_sd[c] = float(np.hypot(rec[c][0][2], rec[c][best][2]))
+            z_gate[c] = line_gain_threshold(max(len(rec[c]) - 1, 1))
+            significant = gain[c] > z_gate[c] * gain_sd[c]
+        else:
+            significant = gain[c] > 0 and gain_check[c] > z_gate[c] * gain_sd[c]
+        if not significant:  # not clearly better than the loop's point: keep it
             continue
         moved[c] = True
         k_min = float(best)
@@ -213,8 +282,11 @@ def ridge_line_search(render: Callable[[Array], tuple[Array, Array, Array | None
                        "sigma_a_per_mm": float(np.exp(pt(c, k)[1])), "objective": rec[c][k][0],
                        "objective_sd": rec[c][k][2], "delta_log_sigma_a": rec[c][k][1]} for k in sorted(rec[c])]
                      for c in range(n_ch)],
-            "gain": gain, "gain_sd": gain_sd, "gain_threshold_sd": z_gate, "moved": moved,
-            "gate": "move only where gain > gain_threshold_sd * gain_sd (renders' noise, delta method)",
+            "gain": gain, "gain_check": gain_check, "gain_sd": gain_sd, "gain_threshold_sd": z_gate, "moved": moved,
+            "gate": ("paired: the best point chosen on one seed, its gain on another > gain_threshold_sd x gain_sd "
+                     "(two seeds' renders)" if render_check is not None else
+                     "move only where gain > gain_threshold_sd x gain_sd (renders' noise, delta method)"),
+            "check_render_seconds": check_seconds,
             "vertex_k": vertex, "sigma_s_prime_per_mm": np.exp(out[:, 0]).tolist(),
             "sigma_a_per_mm": np.exp(out[:, 1]).tolist()}
     return out, info

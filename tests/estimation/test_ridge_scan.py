@@ -189,3 +189,26 @@ def test_line_gain_threshold_is_the_bonferroni_normal_quantile() -> None:
     assert line_gain_threshold(5) > line_gain_threshold(3) > line_gain_threshold(2)
     with pytest.raises(ValueError, match="n_compared"):
         line_gain_threshold(0)
+
+
+@pytest.mark.parametrize(("off", "rel_se", "moves"), [(1.0, 0.05, False), (1.25, 0.02, True)])
+def test_the_paired_gate_tests_the_choice_on_another_seed(off: float, rel_se: float, moves: bool) -> None:
+    """With ``render_check`` the best point is chosen on one seed and tested on two renders of another: at the truth
+    (the seed where a noisy point looked 23.6 better) it stays; 25 % off with 2 % noise (a gain of 95 on sd ~25) it
+    moves; the measured gain sd is the renders' (:func:`paired_gain_sd` ~ the delta method's bound, the renders here
+    being independent)."""
+    obs, _, _, _ = _render(TRUTH)
+    start = TRUTH + np.log(off)
+    out, info = ridge_line_search(_noisy(rel_se, 6), obs, _metric, start, np.array([True, False]),
+                                  render_check=_noisy(rel_se, 99))
+    assert info["moved"] == [moves, False] and len(info["check_render_seconds"]) == 2
+    assert info["gain_threshold_sd"][0] == pytest.approx(line_gain_threshold(1))
+    b = {g["k"]: g for g in info["grid"][0]}
+    best = min(b, key=lambda k: b[k]["objective"])
+    bound = np.hypot(b[0]["objective_sd"], b[best]["objective_sd"])
+    assert 0.7 * bound < info["gain_sd"][0] < 1.3 * bound
+    if moves:
+        assert info["gain_check"][0] > info["gain_threshold_sd"][0] * info["gain_sd"][0]
+        assert abs(np.exp(out[0, 0] - TRUTH[0, 0]) - 1.0) < 0.1
+    else:
+        np.testing.assert_array_equal(out, start)
