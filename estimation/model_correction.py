@@ -130,9 +130,10 @@ _FAST_FD_STEP = 1e-3
 #: fit's standard error, every channel and parameter: it then adds at most 1 + 0.5^2 = 1.25x to their variance
 #: (~12 % to an interval, which carries it: the refits weigh the correction's variance)
 RENDER_NOISE_FRACTION: float = 0.5
-#: the ridge line search's significance gate renders its candidate and the loop's point again with seed + this (an
-#: independent seed: the loop's renders all use ``seed``), :func:`estimation.ridge_scan.ridge_line_search`
-LINE_CHECK_SEED_OFFSET: int = 7919
+#: the ridge line search's significance gate renders its candidate and the loop's point again with seed + each of
+#: these (independent seeds: the loop's renders all use ``seed``), :func:`estimation.ridge_scan.ridge_line_search`;
+#: three: one check seed's gain has an sd ~ the gain itself on the zoo's sky boxes (z11: 17 +- 12; docs/model-error.md)
+LINE_CHECK_SEED_OFFSETS: tuple[int, ...] = (7919, 15838, 23757)
 
 
 class ReferenceRenderer(Protocol):
@@ -659,7 +660,7 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
         loop_point = np.where(gn_mode[:, None], theta_fit, _theta(acc_fit))  # what the loop would report
         theta_line, line_info = ridge_line_search(
             render_line, obs, lambda se_l, q_l: _metric(sig, se_l, q_l, model_error) * huber_scale, loop_point,
-            line_ch, render_check=lambda th: render_line(th, seed + LINE_CHECK_SEED_OFFSET))
+            line_ch, render_check=[lambda th, o=o: render_line(th, seed + o) for o in LINE_CHECK_SEED_OFFSETS])
         line_info.update(spp=int(getattr(refine_reference, "current_spp", 0) or 0), coarse_spp=spp_now,
                          render_to_fit_sd_ratio=ratio_r, loop_sigma_s_prime_per_mm=np.exp(loop_point[:, 0]).tolist())
     if gn_mode.any() or line_ch.any():

@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import time
 from statistics import NormalDist
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -166,7 +166,7 @@ def line_gain_threshold(n_compared: int, level: float = LINE_SIGNIFICANCE) -> fl
 def ridge_line_search(render: Callable[[Array], tuple[Array, Array, Array | None, float]], obs: Array,
                       metric: Callable[[Array, Array], Array], theta: Array, channels: NDArray[np.bool_],
                       step_log: float = LINE_STEP_LOG, extend: int = LINE_EXTEND,
-                      render_check: Callable[[Array], tuple[Array, Array, Array | None, float]] | None = None
+                      render_check: Sequence[Callable[[Array], tuple[Array, Array, Array | None, float]]] = ()
                       ) -> tuple[Array, dict[str, Any]]:
     """The profile objective along the ridge of constant albedo through ``theta`` (C, 2), minimised on renders.
 
@@ -184,10 +184,11 @@ def ridge_line_search(render: Callable[[Array], tuple[Array, Array, Array | None
     a jagged, flat profile; docs/model-error.md, "A significance gate for the ridge line search"). A channel moves
     only where its best point b beats the loop's point (k = 0) significantly:
 
-    - with ``render_check`` (the same renderer with another seed): b is chosen on ``render``'s renders and tested on
-      two more, ``render_check``'s at k = 0 and b (sample splitting, Cox 1975, Biometrika 62(2): the test's gain is
-      not biased by the choice): that gain must exceed :func:`line_gain_threshold` (1) = 1.64 times its standard
-      deviation measured from the two seeds' renders (:func:`paired_gain_sd`, common random numbers included);
+    - with ``render_check`` (the same renderer with other seeds, n of them): b is chosen on ``render``'s renders and
+      tested on 2 n more, each check seed's at k = 0 and b (sample splitting, Cox 1975, Biometrika 62(2): the test's
+      gain is not biased by the choice): the check seeds' mean gain must exceed :func:`line_gain_threshold` (1) =
+      1.64 times its standard deviation, sqrt(mean var / n), each var measured from the search's and a check seed's
+      renders (:func:`paired_gain_sd`, common random numbers included);
     - without: the search's own gain must exceed :func:`line_gain_threshold` (the number of other points compared)
       times sqrt(sd_0^2 + sd_b^2) (:func:`profile_objective`'s delta method; a bound for the renders' shared seed,
       whose positive correlation makes the true spread smaller: measured on z11 2-3x).
@@ -242,25 +243,31 @@ def ridge_line_search(render: Callable[[Array], tuple[Array, Array, Array | None
                 bests[c] = best
                 gain[c] = float(rec[c][0][0] - rec[c][best][0])
     check_seconds: list[float] = []
-    if render_check is not None and any(b is not None for b in bests):  # the candidates tested on another seed
-        checked = []
-        for todo in ([0 if b is not None else None for b in bests], bests):
-            q, se, dq, sec = _render_points(render_check, theta, todo, pt)
-            check_seconds.append(sec)
-            checked.append((q, se, dq))
+    if render_check and any(b is not None for b in bests):  # the candidates tested on other seeds
+        gains: list[list[float]] = [[] for _ in range(n_ch)]
+        variances: list[list[float]] = [[] for _ in range(n_ch)]
+        for render_other in render_check:
+            checked = []
+            for todo in ([0 if b is not None else None for b in bests], bests):
+                q, se, dq, sec = _render_points(render_other, theta, todo, pt)
+                check_seconds.append(sec)
+                checked.append((q, se, dq))
+            for c, b in enumerate(bests):
+                if b is not None:
+                    gains[c].append(profile_objective(*checked[0], obs, fixed[0], c)[0]
+                                    - profile_objective(*checked[1], obs, fixed[0], c)[0])
+                    variances[c].append(paired_gain_sd(kept[c][0], kept[c][b], checked[0][0], checked[1][0], obs,
+                                                       fixed[0], c) ** 2)
         for c, b in enumerate(bests):
-            if b is None:
-                continue
-            m = fixed[0]
-            gain_check[c] = float(profile_objective(*checked[0], obs, m, c)[0]
-                                  - profile_objective(*checked[1], obs, m, c)[0])
-            gain_sd[c] = paired_gain_sd(kept[c][0], kept[c][b], checked[0][0], checked[1][0], obs, m, c)
-            z_gate[c] = line_gain_threshold(1)
+            if b is not None:  # the check seeds' mean gain and its sd (independent seeds: sd / sqrt(n))
+                gain_check[c] = float(np.mean(gains[c]))
+                gain_sd[c] = float(np.sqrt(np.mean(variances[c]) / len(variances[c])))
+                z_gate[c] = line_gain_threshold(1)
     for c in range(n_ch):
         best = bests[c]
         if best is None:
             continue
-        if render_check is None:
+        if not render_check:
             gain_sd[c] = float(np.hypot(rec[c][0][2], rec[c][best][2]))
             z_gate[c] = line_gain_threshold(max(len(rec[c]) - 1, 1))
             significant = gain[c] > z_gate[c] * gain_sd[c]
@@ -283,8 +290,8 @@ def ridge_line_search(render: Callable[[Array], tuple[Array, Array, Array | None
                        "objective_sd": rec[c][k][2], "delta_log_sigma_a": rec[c][k][1]} for k in sorted(rec[c])]
                      for c in range(n_ch)],
             "gain": gain, "gain_check": gain_check, "gain_sd": gain_sd, "gain_threshold_sd": z_gate, "moved": moved,
-            "gate": ("paired: the best point chosen on one seed, its gain on another > gain_threshold_sd x gain_sd "
-                     "(two seeds' renders)" if render_check is not None else
+            "gate": ("paired: the best point chosen on one seed, the mean gain on the check seeds > gain_threshold_sd x "
+                     "gain_sd (measured from the seeds' renders)" if render_check else
                      "move only where gain > gain_threshold_sd x gain_sd (renders' noise, delta method)"),
             "check_render_seconds": check_seconds,
             "vertex_k": vertex, "sigma_s_prime_per_mm": np.exp(out[:, 0]).tolist(),
