@@ -4,7 +4,7 @@ Runs ``benchmarks/scene_zoo.py`` (its arguments, unchanged) with :func:`estimati
 wrapped: after the search (seed ``s``, its own renders and decision as in any run), every grid point it visited is
 rendered again with seeds ``s + o`` for ``o`` in ``--extra-seeds`` (each seed's renders share it: common random
 numbers as in the search) and read by :func:`estimation.ridge_scan.profile_objective` with that seed's k = 0 metric,
-as the search reads its own. Printed and written (``--noise-json``) per scene and channel: the objective and its
+as the search reads its own (``--metric search``: with the search's, as the gate reads its check seeds). Printed and written (``--noise-json``) per scene and channel: the objective and its
 delta-method standard deviation per point and seed, the seed-to-seed spread of each point's objective and of each
 gain J(0) - J(k) against the predicted sqrt(sd_0^2 + sd_k^2) (the bound for independent renders), and the
 correlation of the two points' first-order noise under one seed, sum_i g0_i e0_i gk_i ek_i over pixels and seeds
@@ -92,7 +92,7 @@ def _line_with_seeds(render: Any, obs: np.ndarray, metric: Any, theta: np.ndarra
                     th[c] = theta[c] + k * step
             r = render(th)
             if m0 is None:
-                m0 = metric(r[1], r[0])
+                m0 = metric(r[1], r[0]) if OWN_METRIC else m_0
             read(off, th, r, m0)
         _SEED_OFFSET[0] = 0
     for x, n in zip(cells, lengths):  # the extra renders leave the estimator's record as it was
@@ -139,17 +139,22 @@ def _line_with_seeds(render: Any, obs: np.ndarray, metric: Any, theta: np.ndarra
 _ORIG_RENDER = mc._render
 EXTRA: list[int] = []
 NOISE_JSON: Path | None = None
+OWN_METRIC = True
 
 
 def main(argv: list[str] | None = None) -> int:
-    global EXTRA, NOISE_JSON
+    global EXTRA, NOISE_JSON, OWN_METRIC
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--extra-seeds", default="1009,2017", help="seed offsets of the re-renders (default 1009,2017)")
     ap.add_argument("--noise-json", type=Path, help="write the records here (after every line search)")
+    ap.add_argument("--metric", choices=["own", "search"], default="own",
+                    help="each extra seed's objective in its own k = 0 render's metric (as the search reads its "
+                         "seed; default) or in the search's (as the gate's check seeds are read)")
     ap.add_argument("zoo", nargs=argparse.REMAINDER, help="-- then benchmarks/scene_zoo.py's arguments")
     args = ap.parse_args(argv)
     EXTRA = [int(x) for x in args.extra_seeds.split(",") if x]
     NOISE_JSON = args.noise_json
+    OWN_METRIC = args.metric == "own"
     mc._render = _render
     mc.ridge_line_search = _line_with_seeds
     import scene_zoo
