@@ -229,7 +229,15 @@ def print_scene(spec: SceneSpec, meta: dict[str, Any], folder: Path, results: li
             print(f"- {r['model']} ridge line search ({line['renders']} renders at {line['spp']} spp, "
                   f"{sum(line['render_seconds']):.1f} s): sigma_s' err: objective {grid} -> "
                   + "/".join(_pct(v / t - 1) for v, t in zip(line["sigma_s_prime_per_mm"],
-                                                             spec.sigma_s_prime_per_mm)))
+                                                             spec.sigma_s_prime_per_mm))
+                  + "".join(f"; gate: gain {g:.1f}"
+                            + (f", on the check seed {gc:.1f}" if gc is not None else "")
+                            + f" vs {z:.2f} x sd {sd:.1f}: {'moved' if mv else 'kept'}"
+                            for g, gc, sd, z, mv in zip(line.get("gain", []),
+                                                        line.get("gain_check", [None] * len(line.get("gain", []))),
+                                                        line.get("gain_sd", []), line.get("gain_threshold_sd", []),
+                                                        line.get("moved", []))
+                            if g is not None and sd is not None))
     sys.stdout.flush()
 
 

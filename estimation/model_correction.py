@@ -67,6 +67,7 @@ Where no channel converged within the budget and the plain fit lies on the ridge
 sun-lit bodies), the estimate moves to the minimum of the renders' own profile objective along that ridge
 (:func:`estimation.ridge_scan.ridge_line_search`, 3-6 renders of ``refine_reference`` at more spp): there the
 likelihood is nearly flat and a slope error of the corrected model moves its fixed point far (the zoo's z02: +13 %).
+It moves only where the gain beats the renders' own noise (its significance gate); else the loop's point stays.
 
 Never confident and wrong: every result carries ``extra["status"]`` per parameter and channel — "ok" only when the
 iteration converged and the interval is finite and narrower than :data:`MAX_OK_INTERVAL_RATIO` (sigma_s') or
@@ -129,6 +130,10 @@ _FAST_FD_STEP = 1e-3
 #: fit's standard error, every channel and parameter: it then adds at most 1 + 0.5^2 = 1.25x to their variance
 #: (~12 % to an interval, which carries it: the refits weigh the correction's variance)
 RENDER_NOISE_FRACTION: float = 0.5
+#: the ridge line search's significance gate renders its candidate and the loop's point again with seed + each of
+#: these (independent seeds: the loop's renders all use ``seed``), :func:`estimation.ridge_scan.ridge_line_search`;
+#: three: one check seed's gain has an sd ~ the gain itself on the zoo's sky boxes (z11: 17 +- 12; docs/model-error.md)
+LINE_CHECK_SEED_OFFSETS: tuple[int, ...] = (7919, 15838, 23757)
 
 
 class ReferenceRenderer(Protocol):
@@ -345,7 +350,7 @@ def estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, ligh
     the cheapest whose noise is at most :data:`RENDER_NOISE_FRACTION` of the plain fit's); when no channel has
     converged within ``max_iterations`` renders, the estimate moves to the minimum of its renders' profile objective
     along the ridge of constant albedo (:func:`estimation.ridge_scan.ridge_line_search`, 3-6 renders;
-    ``extra["ridge_line_search"]``), still weak, its intervals stretched over the move. Returns the last accepted refit with
+    ``extra["ridge_line_search"]``; only where its gain is significant against the renders' noise), still weak, its intervals stretched over the move. Returns the last accepted refit with
     ``model`` ``"<base_model>+reference"``, ``extra["reference"]`` (every step: the point rendered, the refit, rho,
     the trust radius, the correction's statistics, seconds), ``extra["converged"]`` (per channel in
     ``extra["converged_per_channel"]``), ``extra["status"]`` / ``["status_reasons"]`` (:func:`parameter_status`),
@@ -646,8 +651,8 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
         if n_ref > 1:
             refine_reference.set_level(level)
 
-        def render_line(th: Array) -> tuple[Array, Array, Array | None, float]:
-            q_l, se_l, dq_l, _, s_l = _render(refine_reference, th, eta_f, seed, patches, n_ch)
+        def render_line(th: Array, seed_l: int = seed) -> tuple[Array, Array, Array | None, float]:
+            q_l, se_l, dq_l, _, s_l = _render(refine_reference, th, eta_f, seed_l, patches, n_ch)
             line_rendered.append((th.copy(), q_l))
             line_se.append(se_l)
             return q_l, se_l, dq_l, s_l
@@ -655,7 +660,7 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
         loop_point = np.where(gn_mode[:, None], theta_fit, _theta(acc_fit))  # what the loop would report
         theta_line, line_info = ridge_line_search(
             render_line, obs, lambda se_l, q_l: _metric(sig, se_l, q_l, model_error) * huber_scale, loop_point,
-            line_ch)
+            line_ch, render_check=[lambda th, o=o: render_line(th, seed + o) for o in LINE_CHECK_SEED_OFFSETS])
         line_info.update(spp=int(getattr(refine_reference, "current_spp", 0) or 0), coarse_spp=spp_now,
                          render_to_fit_sd_ratio=ratio_r, loop_sigma_s_prime_per_mm=np.exp(loop_point[:, 0]).tolist())
     if gn_mode.any() or line_ch.any():
