@@ -77,11 +77,16 @@ MAX_LOW_LEVEL_RENDERS: int = 2
 #: difference of their defects carries the cheaper level's noise, not only the defect's slope)
 SECANT_ACROSS_LEVELS: bool = True
 #: with a reference of several sample-count levels: from this many full-level renders on, the loop also stops when
-#: every usable channel's last step of D (log sigma_t') lies inside D's own 95 % interval and that interval, widened
-#: by the step, is still "ok"-narrow (MAX_OK_INTERVAL_RATIO); the reported intervals are then widened by the last
-#: step of each quantity (a systematic allowance for the distance still to go). 0 disables (issue 19: D is what the
-#: estimate reports; sigma_a of a weakly absorbing channel can keep moving by a few per cent while D has settled)
-D_STOP_MIN_FULL_RENDERS: int = 3
+#: every usable channel's last step of D (log sigma_t') is at most D_STOP_STEP_FRACTION of the half-width of D's own
+#: 95 % interval and that interval, widened by the step, is still "ok"-narrow (MAX_OK_INTERVAL_RATIO); the reported
+#: intervals are then widened by the last step of each quantity (a systematic allowance for the distance still to
+#: go). 0 disables (issue 19: D is what the estimate reports; sigma_a of a weakly absorbing channel can keep moving
+#: by several per cent while D has settled)
+D_STOP_MIN_FULL_RENDERS: int = 2
+#: the D stop's bounds on D's last step: a fraction of the half-width of D's 95 % interval (log), and at most this
+#: change in log D (with a contraction of 1/2 per render the distance still to go is about one more such step)
+D_STOP_STEP_FRACTION: float = 0.5
+D_STOP_MAX_LOG_STEP: float = 0.02
 
 __all__ = ["SphereObservables", "SphereReference", "SphereReferenceStep", "SphereReferenceEstimate",
            "sphere_model_observables", "estimate_sphere_with_reference"]
@@ -302,7 +307,7 @@ def estimate_sphere_with_reference(observed: SphereObservables | DiffusionSummar
     ``n_levels`` / ``set_level(i)`` / ``current_spp``, is first called at its cheapest level: the loop stops there
     only when the stop rule holds and every usable channel's D interval is narrow enough to be "ok", else moves up
     after a settled step or :data:`MAX_LOW_LEVEL_RENDERS` renders; from :data:`D_STOP_MIN_FULL_RENDERS` full renders on
-    it also stops when D's last step is inside D's interval, widening the intervals by the last steps; issue 19);
+    it also stops when D's last step is well inside D's interval, widening the intervals by the last steps; issue 19);
     ``radius_mm``, ``eta``: the known sphere; ``rel_tol`` and
     the stop rule: module docstring; ``max_step``: largest change of log sigma_s' or log sigma_a in one
     quasi-Newton step (a trust region; the first, defect-correction step is not limited);
@@ -477,12 +482,13 @@ def estimate_sphere_with_reference(observed: SphereObservables | DiffusionSummar
             settled = bool(np.all(np.exp(2 * 1.96 * sd_n[use]) <= MAX_OK_INTERVAL_RATIO))
         if (not settled and at_top and n_levels > 1 and D_STOP_MIN_FULL_RENDERS > 0
                 and full_renders >= D_STOP_MIN_FULL_RENDERS):
-            # the D stop (issue 19): D's step inside D's interval, the interval widened by that step still "ok"
+            # the D stop (issue 19): D's step well inside D's interval, the interval widened by it still "ok"
             st_o, st_n = np.exp(x).sum(axis=1), np.exp(x_new).sum(axis=1)
             w_n = np.exp(x_new) / st_n[:, None]
             half_d = 1.96 * np.sqrt(np.einsum("ci,cij,cj->c", w_n, _log_cov(B, np.hypot(sd_obs, sd_ref)), w_n))
             step_d = np.abs(np.log(st_n / st_o))
-            d_ok = (~cens) & (step_d <= half_d) & (np.exp(2.0 * (half_d + step_d)) <= MAX_OK_INTERVAL_RATIO)
+            d_ok = ((~cens) & (step_d <= np.minimum(D_STOP_STEP_FRACTION * half_d, D_STOP_MAX_LOG_STEP))
+                    & (np.exp(2.0 * (half_d + step_d)) <= MAX_OK_INTERVAL_RATIO))
             if bool(np.all(d_ok[use])):
                 settled = d_stop = True
                 conv_c = use.copy()
