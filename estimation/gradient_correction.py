@@ -38,7 +38,9 @@ Every render uses the same ``seed`` (common random numbers: the reference is one
 function of x, so secants are meaningful and the iteration converges to that realisation's fixed point). Stop
 rule of :mod:`estimation.model_correction`: every parameter's last step is below ``rel_tol`` or below a quarter of
 the half-width of its own interval (log), or ``max_iterations`` renders were made; the result is the last
-solution x_{i+1} (not rendered again).
+solution x_{i+1} (not rendered again). With sample-count levels (issue 19) the loop may also end by the *D stop*
+(:data:`D_STOP_MIN_FULL_RENDERS`): D is what the estimate reports, and a weakly absorbing channel's sigma_a can keep
+moving by several per cent while D has settled; its intervals then carry the last steps as a systematic allowance.
 
 Censoring: where A_obs exceeds the albedo of a non-absorbing sphere of the observed shortening (marble red and
 green on Monte Carlo frames) the uncorrected inversion clips sigma_a to 0. The reference is then rendered at a
