@@ -38,7 +38,9 @@ Every render uses the same ``seed`` (common random numbers: the reference is one
 function of x, so secants are meaningful and the iteration converges to that realisation's fixed point). Stop
 rule of :mod:`estimation.model_correction`: every parameter's last step is below ``rel_tol`` or below a quarter of
 the half-width of its own interval (log), or ``max_iterations`` renders were made; the result is the last
-solution x_{i+1} (not rendered again).
+solution x_{i+1} (not rendered again). With sample-count levels (issue 19) the loop may also end by the *D stop*
+(:data:`D_STOP_MIN_FULL_RENDERS`): D is what the estimate reports, and a weakly absorbing channel's sigma_a can keep
+moving by several per cent while D has settled; its intervals then carry the last steps as a systematic allowance.
 
 Censoring: where A_obs exceeds the albedo of a non-absorbing sphere of the observed shortening (marble red and
 green on Monte Carlo frames) the uncorrected inversion clips sigma_a to 0. The reference is then rendered at a
@@ -76,6 +78,17 @@ MAX_LOW_LEVEL_RENDERS: int = 2
 #: Broyden's secant between two renders of different sample-count levels (different Monte Carlo realisations: the
 #: difference of their defects carries the cheaper level's noise, not only the defect's slope)
 SECANT_ACROSS_LEVELS: bool = True
+#: with a reference of several sample-count levels: from this many full-level renders on, the loop also stops when
+#: every usable channel's last step of D (log sigma_t') is at most D_STOP_STEP_FRACTION of the half-width of D's own
+#: 95 % interval and that interval, widened by the step, is still "ok"-narrow (MAX_OK_INTERVAL_RATIO); the reported
+#: intervals are then widened by the last step of each quantity (a systematic allowance for the distance still to
+#: go). 0 disables (issue 19: D is what the estimate reports; sigma_a of a weakly absorbing channel can keep moving
+#: by several per cent while D has settled)
+D_STOP_MIN_FULL_RENDERS: int = 2
+#: the D stop's bounds on D's last step: a fraction of the half-width of D's 95 % interval (log), and at most this
+#: change in log D (with a contraction of 1/2 per render the distance still to go is about one more such step)
+D_STOP_STEP_FRACTION: float = 0.5
+D_STOP_MAX_LOG_STEP: float = 0.02
 
 __all__ = ["SphereObservables", "SphereReference", "SphereReferenceStep", "SphereReferenceEstimate",
            "sphere_model_observables", "estimate_sphere_with_reference"]
@@ -295,7 +308,9 @@ def estimate_sphere_with_reference(observed: SphereObservables | DiffusionSummar
     ``max_iterations`` times at its full sample count, always with ``seed`` (a reference with sample-count levels,
     ``n_levels`` / ``set_level(i)`` / ``current_spp``, is first called at its cheapest level: the loop stops there
     only when the stop rule holds and every usable channel's D interval is narrow enough to be "ok", else moves up
-    after a settled step or :data:`MAX_LOW_LEVEL_RENDERS` renders; issue 19); ``radius_mm``, ``eta``: the known sphere; ``rel_tol`` and
+    after a settled step or :data:`MAX_LOW_LEVEL_RENDERS` renders; from :data:`D_STOP_MIN_FULL_RENDERS` full renders on
+    it also stops when D's last step is well inside D's interval, widening the intervals by the last steps; issue 19);
+    ``radius_mm``, ``eta``: the known sphere; ``rel_tol`` and
     the stop rule: module docstring; ``max_step``: largest change of log sigma_s' or log sigma_a in one
     quasi-Newton step (a trust region; the first, defect-correction step is not limited);
     ``sigma_a_floor_rel``: render points keep sigma_a >= this fraction of sigma_t' (censored starts); ``fdr``:
@@ -375,6 +390,8 @@ def estimate_sphere_with_reference(observed: SphereObservables | DiffusionSummar
         reference.set_level(0)
     low_renders = full_renders = 0
     it = 0
+    d_stop = False
+    last_logs = np.zeros((n_ch, 3))   # the last step of (log sigma_s', log sigma_a, log D), for the D stop's widening
     level_prev = level
     while full_renders < max_iterations:
         it += 1
@@ -465,6 +482,19 @@ def estimate_sphere_with_reference(observed: SphereObservables | DiffusionSummar
             w_n = np.exp(x_new) / st_n[:, None]
             sd_n = np.sqrt(np.einsum("ci,cij,cj->c", w_n, _log_cov(B, np.hypot(sd_obs, sd_ref)), w_n))
             settled = bool(np.all(np.exp(2 * 1.96 * sd_n[use]) <= MAX_OK_INTERVAL_RATIO))
+        if (not settled and at_top and n_levels > 1 and D_STOP_MIN_FULL_RENDERS > 0
+                and full_renders >= D_STOP_MIN_FULL_RENDERS):
+            # the D stop (issue 19): D's step well inside D's interval, the interval widened by it still "ok"
+            st_o, st_n = np.exp(x).sum(axis=1), np.exp(x_new).sum(axis=1)
+            w_n = np.exp(x_new) / st_n[:, None]
+            half_d = 1.96 * np.sqrt(np.einsum("ci,cij,cj->c", w_n, _log_cov(B, np.hypot(sd_obs, sd_ref)), w_n))
+            step_d = np.abs(np.log(st_n / st_o))
+            d_ok = ((~cens) & (step_d <= np.minimum(D_STOP_STEP_FRACTION * half_d, D_STOP_MAX_LOG_STEP))
+                    & (np.exp(2.0 * (half_d + step_d)) <= MAX_OK_INTERVAL_RATIO))
+            if bool(np.all(d_ok[use])):
+                settled = d_stop = True
+                conv_c = use.copy()
+                last_logs = np.where(use[:, None], np.abs(np.column_stack([step[:, 0], step[:, 1], step_d])), 0.0)
         if settled:
             converged = True
             break
@@ -491,6 +521,8 @@ def estimate_sphere_with_reference(observed: SphereObservables | DiffusionSummar
                      "D_mm": (1.0 / (3.0 * st))[:, None] * np.exp(np.stack([-z * sd_lst, z * sd_lst], axis=1))}
     if not converged:
         intervals = _widen_unconverged(intervals, steps, conv_c)
+    elif d_stop:
+        intervals = _widen_by(intervals, last_logs)
     with np.errstate(divide="ignore", invalid="ignore"):
         # as the single-image loop's stop rule: wider than the bound means weak information on D, whatever the
         # iteration did (measured: skimmilk red on the 5 mm acceptance sphere, -10.3 % in [0.27, 0.67] mm, said "ok")
@@ -502,7 +534,8 @@ def estimate_sphere_with_reference(observed: SphereObservables | DiffusionSummar
     kB_se = np.where(np.isfinite(kB), sd_ref[:, 1], np.nan)
     u_c = u_obs - np.stack([np.log(kA), np.log(kB)], axis=1)
     corrected = SphereObservables(np.exp(u_c[:, 0]), 1.0 - np.exp(u_c[:, 1]))
-    msg = (f"converged after {len(steps)} reference renders" if converged else
+    msg = (f"converged after {len(steps)} reference renders" + (" (D's last step inside its interval)" if d_stop
+                                                                   else "") if converged else
            f"reference iteration stopped after {len(steps)} renders with a last change of {steps[-1].change:.1%}"
            f" (> rel_tol {rel_tol:.1%} and > 1/4 of the interval)")
     if np.any(cens & ok):
@@ -516,6 +549,7 @@ def estimate_sphere_with_reference(observed: SphereObservables | DiffusionSummar
         provenance={"radius_mm": rho, "eta": eta_f, "seed": int(seed), "rel_tol": rel_tol, "fdr": fdr,
                     "model": "dipole-jensen (truncated, sphere chord distance)+reference",
                     "jacobian": B.tolist(),
+                    "stop": "D" if d_stop else "parameters" if converged else "budget",
                     "scan": None if scan_res is None else scan_res.as_dict(),
                     "interval": "95 %: observed median intervals and the reference's Monte Carlo error in "
                                 "quadrature on (log albedo, log (1 - shortening)), through the secant Jacobian"})
@@ -556,6 +590,20 @@ def _widen_unconverged(intervals: dict[str, Array], steps: list[SphereReferenceS
         with np.errstate(invalid="ignore", over="ignore"):
             iv[:, 0] = iv[:, 0] * np.exp(-extra)
             iv[:, 1] = iv[:, 1] * np.exp(extra)
+        out[k] = iv
+    return out
+
+
+def _widen_by(intervals: dict[str, Array], log_extra: Array) -> dict[str, Array]:
+    """The intervals with their ends moved out by ``log_extra`` (C, 3): per channel, in log, for sigma_s', sigma_a
+    and D (the D stop's last steps; added to the statistical half-width, not in quadrature: the distance still to
+    go is systematic). A censored sigma_a keeps its lower end 0."""
+    out = dict(intervals)
+    for j, k in enumerate(("sigma_s_prime_per_mm", "sigma_a_per_mm", "D_mm")):
+        iv = np.array(intervals[k], dtype=np.float64)
+        with np.errstate(invalid="ignore", over="ignore"):
+            iv[:, 0] = iv[:, 0] * np.exp(-log_extra[:, j])
+            iv[:, 1] = iv[:, 1] * np.exp(log_extra[:, j])
         out[k] = iv
     return out
 
