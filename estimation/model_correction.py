@@ -341,7 +341,9 @@ def estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, ligh
     MonteCarloReference` with ``spp_levels``) renders first at its cheapest level, and from then on at the cheapest
     level whose noise is at most :data:`RENDER_NOISE_FRACTION` of the fit's (:func:`_noise_matched_level`; that
     first render is not counted against ``max_iterations`` when the level changes; issue 19: "adaptive sample counts
-    that stop when the correction's noise is below the fit's"). ``rel_tol`` > 0 also counts a
+    that stop when the correction's noise is below the fit's"); after every refit the level is raised by the same rule
+    against the refit's errors, up to the final level (:data:`FINAL_SPP_FRACTION`), and the loop neither ends converged
+    nor spends its last render below the final level). ``rel_tol`` > 0 also counts a
     refit within that relative change of its accepted point as converged. ``scan_reference``, optional: a cheap
     renderer of the same scene (low spp; derivatives with respect to log sigma_a help) for the start: channels whose
     plain fit is at its range's edge or weak on the ridge of constant albedo start from the best point of a coarse
