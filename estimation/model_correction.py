@@ -129,10 +129,8 @@ _FAST_FD_STEP = 1e-3
 #: fit's standard error, every channel and parameter: it then adds at most 1 + 0.5^2 = 1.25x to their variance
 #: (~12 % to an interval, which carries it: the refits weigh the correction's variance)
 RENDER_NOISE_FRACTION: float = 0.5
-#: ... and after every refit the level is raised (never lowered) by the same rule against the refit's standard errors,
-#: up to the first level of at least this fraction of the top sample count (the "final level"); a loop that converges
-#: below it renders on at the final level until it converges there, and the budget's last render is at the final level
-#: at least: the cheap renders' bias held the fixed point off on zoo scenes (z09, z27, z18: issue 19)
+#: re-checked after every refit (the refit's errors; never lowered) up to the final level, the first of at least this
+#: fraction of the top spp, where the loop converges and ends (cheap renders' bias: zoo z09, z27, z18; issue 19)
 FINAL_SPP_FRACTION: float = 0.5
 
 
@@ -594,13 +592,11 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
         acc_fit = fit
         se_fit = _standard_errors(fit, theta_fit)
         if n_levels > 1 and level_info is not None:
-            # the level follows the loop's sharpening: the plain fit's error (huge for a weak plain fit) let the
-            # cheapest level pass where the refits are far sharper and that render noise dominated them (the zoo in
-            # adaptive mode: z09 -22.9 %, z27 -19.8 %, z18 sigma_a -59.7 %, intervals missing the truth)
+            # the level follows the refits' errors (a weak plain fit's let 16 spp pass on z10, z18: render sd 1.3-3.3x
+            # the refit's), only where the refit bounds the parameter (else a near-singular sandwich)
             lv_now = int(getattr(reference, "level", 0))
             with np.errstate(all="ignore"):
                 k_acc = np.where(np.abs(m_fast) > 0, acc.q / m_fast, np.nan)
-            # only parameters the refit bounds (an unbounded one's sandwich is that of a near-singular fit)
             se_b = np.where(se_fit <= np.log(MAX_OK_INTERVAL_RATIO) / (2 * _Z95), se_fit, np.inf)
             lv_new, ratio_now = _noise_matched_level(reference, acc.q, acc.q_se, dm_fast * k_acc[..., None], metric,
                                                      se_b, spp0=spp_now)
@@ -648,9 +644,8 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
                                    spp_now))
         if it >= min_iterations and np.all(converged):
             if n_levels > 1 and spp_now < int(reference.spp_levels[lv_final]):
-                # converged on cheap renders: their bias (not only their noise) can hold the fixed point off (the
-                # zoo's z27, -19.8 % at 16 spp against +4.3 % at 128): go on from here at the final level until the
-                # loop converges there, within the budget (at least one render more)
+                # cheap renders' bias holds a fixed point off (z27: -19.8 % at 16 spp, +5.3 % at 128): converge at
+                # the final level (at least one render more)
                 reference.set_level(max(lv_final, int(getattr(reference, "level", 0))))
                 level_info["chosen_spp"] = int(reference.current_spp)
                 level_info["final_level_renders"] = True
