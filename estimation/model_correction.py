@@ -487,11 +487,10 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
     rendered: list[tuple[Array, Array]] = []  # (render point, its radiance) for the flat-likelihood check
     # sample-count levels (issue 19): the first render at the cheapest level picks the level of the others
     n_levels = max(1, int(getattr(reference, "n_levels", 1)))
-    lv_final = 0
+    lv_final = 0 if n_levels < 2 else min(i for i, n in enumerate(reference.spp_levels)
+                                          if n >= FINAL_SPP_FRACTION * int(reference.spp_levels[-1]))
     if n_levels > 1:
         reference.set_level(0)
-        top = int(reference.spp_levels[-1])
-        lv_final = min(i for i, n in enumerate(reference.spp_levels) if n >= FINAL_SPP_FRACTION * top)
     level_info: dict[str, Any] | None = None
     n_max = max_iterations
     it = 0
@@ -600,8 +599,7 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
             se_b = np.where(se_fit <= np.log(MAX_OK_INTERVAL_RATIO) / (2 * _Z95), se_fit, np.inf)
             lv_new, ratio_now = _noise_matched_level(reference, acc.q, acc.q_se, dm_fast * k_acc[..., None], metric,
                                                      se_b, spp0=spp_now)
-            level_info.setdefault("raised", []).append({"iteration": it, "spp": spp_now,
-                                                        "render_to_fit_sd_ratio": ratio_now})
+            level_info.setdefault("raised", []).append({"spp": spp_now, "render_to_fit_sd_ratio": ratio_now})
             lv_new = min(lv_new, lv_final) if np.isfinite(ratio_now) else lv_now
             if lv_new > lv_now:
                 reference.set_level(lv_new)
@@ -647,8 +645,7 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
                 # cheap renders' bias holds a fixed point off (z27: -19.8 % at 16 spp, +5.3 % at 128): converge at
                 # the final level (at least one render more)
                 reference.set_level(max(lv_final, int(getattr(reference, "level", 0))))
-                level_info["chosen_spp"] = int(reference.current_spp)
-                level_info["final_level_renders"] = True
+                level_info.update(chosen_spp=int(reference.current_spp), final_level_renders=True)
                 n_max = max(n_max, it + 1)
             else:
                 break
