@@ -154,7 +154,8 @@ def run_model(scene: Any, model: str, spec: SceneSpec, ref_spp: int, ref_iterati
            "n_warnings": len(rec["warnings"]) + len(lines) + (exc is not None), "converged": res.get("converged"),
            "renders": len(ref.get("renders") or []), "scan_renders": len(ref.get("scan_renders") or []),
            "ridge_scan": ref.get("ridge_scan"), "ridge_line_search": ref.get("ridge_line_search"),
-           "status": res.get("status"),
+           "status": res.get("status"), "render_spp": [r.get("spp") for r in ref.get("renders") or []],
+           "sample_count_levels": ref.get("sample_count_levels"),
            "rows": evaluate(res, model, list(spec.sigma_s_prime_per_mm), list(spec.sigma_a_per_mm))}
     if ref:
         steps, cum = [], 0.0

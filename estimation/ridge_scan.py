@@ -37,7 +37,7 @@ from .reference_intervals import _huber_sum
 from .single_image import SingleImageResult
 
 __all__ = ["MAX_DELTA_LOG_SA", "RIDGE_CORRELATION", "EDGE_FACTOR", "SCAN_RATIO", "SCAN_STEPS", "SCAN_EXTEND",
-           "LINE_STEP_LOG", "LINE_EXTEND", "LINE_SIGNIFICANCE", "line_gain_threshold", "profile_chi2", "profile_objective", "ridge_channels", "scan_ridge",
+           "LINE_STEP_LOG", "LINE_EXTEND", "LINE_SIGNIFICANCE", "LINE_CHECK_SEED_OFFSETS", "line_gain_threshold", "profile_chi2", "profile_objective", "ridge_channels", "scan_ridge",
            "on_the_ridge", "ridge_line_search", "paired_gain_sd"]
 
 Array = NDArray[np.float64]
@@ -67,6 +67,10 @@ _HUBER_K = 2.5
 #: more points past an end of the grid while the best point lies on it
 LINE_STEP_LOG: float = 0.12
 LINE_EXTEND: int = 3
+#: the ridge line search's significance gate renders its candidate and the loop's point again with seed + each of
+#: these (independent seeds: the loop's renders all use ``seed``), :func:`ridge_line_search`'s ``render_check``;
+#: three: one check seed's gain has an sd ~ the gain itself on the zoo's sky boxes (z11: 17 +- 12; docs/model-error.md)
+LINE_CHECK_SEED_OFFSETS: tuple[int, ...] = (7919, 15838, 23757)
 #: :func:`ridge_line_search` moves off the loop's point only when the best point's gain in the objective exceeds
 #: the one-sided normal quantile of this level, Bonferroni-split over the points compared with the loop's (the best
 #: of n - 1 noisy candidates: Bonferroni 1936), times the gain's standard deviation from the renders' noise

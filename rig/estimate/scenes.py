@@ -38,7 +38,9 @@ __all__ = ["estimate_scene", "format_table", "run_cli"]
 RIDGE_SCAN_SPP_DIVISOR, RIDGE_SCAN_MIN_SPP = 4, 8
 #: reference_mode "adaptive" (issue 19): the reference's sample-count levels reference_spp / these, at least
 #: REFERENCE_MIN_SPP; the first render at the cheapest, then the cheapest whose noise is at most half the fit's
-#: (estimation.model_correction.RENDER_NOISE_FRACTION); "legacy": every render at reference_spp
+#: (estimation.model_correction.RENDER_NOISE_FRACTION; re-checked after every refit, raised up to reference_spp / 2:
+#: FINAL_SPP_FRACTION), converging and ending on renders at reference_spp / 2 at least; "legacy": every render at
+#: reference_spp
 REFERENCE_SPP_LEVEL_DIVISORS, REFERENCE_MIN_SPP = (8, 4, 2, 1), 8
 REFERENCE_MODES = ("adaptive", "legacy")
 #: mc-table+reference's ridge line search (estimation.model_correction, ``refine_reference``): when no channel has
@@ -47,8 +49,9 @@ REFERENCE_MODES = ("adaptive", "legacy")
 #: largest), score-function derivatives only (the sigma_a refit): the zoo's sky-lit boxes z02 / z11
 REFINE_SPP_FACTORS = (2, 4, 8)
 #: the default stays "legacy" until a full zoo run (benchmarks/scene_zoo.py) has checked "adaptive" on every scene:
-#: measured so far on eight zoo scenes against main's adaptive and on three (z10, z04, z15) against legacy
-#: (docs/model-error.md, "Fewer and smaller renders")
+#: measured so far on eight zoo scenes against main's adaptive and on three (z10, z04, z15) against legacy; after the
+#: final-level change (branch adaptive19) 16 scenes pass S-all / A-all / cover (docs/model-error.md, "Fewer and
+#: smaller renders", "The zoo check after the final-level change")
 DEFAULT_REFERENCE_MODE = "legacy"
 
 
