@@ -144,11 +144,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--spp", type=int, default=8, help="reference spp (default 8)")
     ap.add_argument("--iterations", type=int, default=2, help="reference iterations (default 2)")
     ap.add_argument("--serial", action="store_true", help="also the in-process serial run (workers=0)")
+    ap.add_argument("--render-chunk-rows", type=int, default=0,
+                    help="split each reference render into chunks of this many rows across the workers (as "
+                         "`rig estimate batch --render-chunk-rows`; 0: whole renders)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     items = scenes(args.items)
     opts = BatchOptions(model="mc-table+reference", reference_spp=args.spp, reference_iterations=args.iterations,
-                        reference_seed=19)
+                        reference_seed=19, render_chunk_rows=args.render_chunk_rows)
     t = time.perf_counter()
     for p in items:
         content_sha256(classify_item(p))
