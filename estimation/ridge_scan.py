@@ -37,8 +37,9 @@ from .reference_intervals import _huber_sum
 from .single_image import SingleImageResult
 
 __all__ = ["MAX_DELTA_LOG_SA", "RIDGE_CORRELATION", "EDGE_FACTOR", "SCAN_RATIO", "SCAN_STEPS", "SCAN_EXTEND",
-           "LINE_STEP_LOG", "LINE_EXTEND", "LINE_SIGNIFICANCE", "LINE_CHECK_SEED_OFFSETS", "line_gain_threshold", "profile_chi2", "profile_objective", "ridge_channels", "scan_ridge",
-           "on_the_ridge", "ridge_line_search", "paired_gain_sd"]
+           "LINE_STEP_LOG", "LINE_EXTEND", "LINE_SIGNIFICANCE", "LINE_CHECK_SEED_OFFSETS", "line_gain_threshold",
+           "profile_chi2", "profile_objective", "paired_gain_sd", "ridge_channels", "scan_ridge", "on_the_ridge",
+           "ridge_line_search"]
 
 Array = NDArray[np.float64]
 
