@@ -38,7 +38,7 @@ from .single_image import SingleImageResult
 
 __all__ = ["MAX_DELTA_LOG_SA", "RIDGE_CORRELATION", "EDGE_FACTOR", "SCAN_RATIO", "SCAN_STEPS", "SCAN_EXTEND",
            "LINE_STEP_LOG", "LINE_EXTEND", "LINE_SIGNIFICANCE", "LINE_CHECK_SEED_OFFSETS", "line_gain_threshold",
-           "profile_chi2", "profile_objective", "paired_gain_sd", "ridge_channels", "scan_ridge", "on_the_ridge",
+           "profile_chi2", "profile_objective", "objective_gradient", "paired_gain_sd", "ridge_channels", "scan_ridge", "on_the_ridge",
            "ridge_line_search"]
 
 Array = NDArray[np.float64]
@@ -139,6 +139,14 @@ def profile_objective(q: Array, se: Array, dq: Array | None, obs: Array, metric:
     return float(_huber_sum(z[ok][:, None], _HUBER_K)[0]), dl, sd
 
 
+def objective_gradient(q: Array, dq: Array | None, obs: Array, metric: Array, c: int) -> Array | None:
+    """(m,) d objective / d q_i = -psi(z_i) / m_i of channel ``c`` at a render ``q`` (psi the Huber derivative, z the
+    normalized residual after the first-order sigma_a refit of :func:`profile_objective`; NaN where unusable), None
+    with fewer than 3 usable rows."""
+    res = _profile_residuals(q, dq, obs, metric, c)
+    return None if res is None else -np.clip(res[0], -_HUBER_K, _HUBER_K) / metric[:, c]
+
+
 def paired_gain_sd(a0: tuple[Array, Array | None], ab: tuple[Array, Array | None], b0: Array, bb: Array,
                    obs: Array, metric: Array, c: int) -> float:
     """The standard deviation of one seed's gain J(0) - J(b), measured from two seeds' renders of both points:
@@ -148,12 +156,9 @@ def paired_gain_sd(a0: tuple[Array, Array | None], ab: tuple[Array, Array | None
     e0 and eb are correlated: common random numbers), and over independent pixels its variance is
     sum_i (u_i(A) - u_i(B))^2 / 2 with u_i = g0_i q0_i - gb_i qb_i: the correlation included, no standard error
     assumed. NaN with fewer than 3 usable rows."""
-    g = []
-    for q, dq in (a0, ab):
-        res = _profile_residuals(q, dq, obs, metric, c)
-        if res is None:
-            return float("nan")
-        g.append(-np.clip(res[0], -_HUBER_K, _HUBER_K) / metric[:, c])
+    g = [objective_gradient(q, dq, obs, metric, c) for q, dq in (a0, ab)]
+    if any(x is None for x in g):
+        return float("nan")
     du = g[0] * (a0[0][:, c] - b0[:, c]) - g[1] * (ab[0][:, c] - bb[:, c])
     du = du[np.isfinite(du)]
     return float(np.sqrt(np.sum(du * du) / 2.0)) if du.size >= 3 else float("nan")

@@ -28,7 +28,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import estimation.model_correction as mc  # noqa: E402
-from estimation.ridge_scan import _HUBER_K, profile_objective, ridge_line_search  # noqa: E402
+from estimation.ridge_scan import objective_gradient, profile_objective, ridge_line_search  # noqa: E402
 from rig.files.provenance import write_json  # noqa: E402
 
 _SEED_OFFSET = [0]
@@ -41,11 +41,8 @@ def _render(reference: Any, theta: Any, eta: float, seed: int, patches: Any, n_c
 
 def _noise_of(q: np.ndarray, se: np.ndarray, dq: Any, obs: np.ndarray, m: np.ndarray, c: int) -> np.ndarray:
     """(m,) the objective's derivative g = -psi(z) / m per row (0 where unusable), z after the sigma_a refit."""
-    obj, dl, _ = profile_objective(q, se, dq, obs, m, c)
-    d_c = dq[:, c, 1] if dq is not None else np.zeros(q.shape[0])
-    z = (obs[:, c] - q[:, c] - dl * d_c) / m[:, c]
-    g = -np.clip(z, -_HUBER_K, _HUBER_K) / m[:, c]
-    return np.where(np.isfinite(g) & np.isfinite(obs[:, c]), g, 0.0)
+    g = objective_gradient(q, dq, obs, m, c)
+    return np.zeros(q.shape[0]) if g is None else np.where(np.isfinite(g), g, 0.0)
 
 
 def _line_with_seeds(render: Any, obs: np.ndarray, metric: Any, theta: np.ndarray, channels: np.ndarray,
