@@ -232,7 +232,7 @@ def print_scene(spec: SceneSpec, meta: dict[str, Any], folder: Path, results: li
                   + "/".join(_pct(v / t - 1) for v, t in zip(line["sigma_s_prime_per_mm"],
                                                              spec.sigma_s_prime_per_mm))
                   + "".join(f"; gate: gain {g:.1f}"
-                            + (f", on the check seed {gc:.1f}" if gc is not None else "")
+                            + (f", check seeds' mean {gc:.1f}" if gc is not None else "")
                             + f" vs {z:.2f} x sd {sd:.1f}: {'moved' if mv else 'kept'}"
                             for g, gc, sd, z, mv in zip(line.get("gain", []),
                                                         line.get("gain_check", [None] * len(line.get("gain", []))),
