@@ -60,6 +60,14 @@ def _noop(i: int) -> int:
     return i
 
 
+def _process_cpu_s() -> float:
+    """CPU seconds (user + system, every thread) of this worker process so far."""
+    import psutil
+
+    t = psutil.Process().cpu_times()
+    return float(t.user + t.system)
+
+
 def scenes(n: int) -> list[Path]:
     from zoo.frames import build_scene
     from zoo.scenes import draw_zoo, quick_subset, quick_variant
@@ -77,9 +85,11 @@ def run_workers(items: list[Path], opts: BatchOptions, workers: int, out: Path) 
         client.run(_warm)
         t_start = time.perf_counter() - t0
         load0 = os.getloadavg()
+        cpu0 = client.run(_process_cpu_s)
         t1 = time.perf_counter()
         rep = run_batch(items, out, options=opts, client=client)
         wall = time.perf_counter() - t1
+        cpu1 = client.run(_process_cpu_s)
         load1 = os.getloadavg()
         overhead = None
         if workers > 1:
@@ -92,13 +102,29 @@ def run_workers(items: list[Path], opts: BatchOptions, workers: int, out: Path) 
         res = json.loads((out / r["key"] / "result.json").read_text())
         ref = res.get("reference") or {}
         render_s[r["key"]] = float(sum(float(x.get("seconds") or 0.0) for x in
-                                       list(ref.get("renders") or []) + list(ref.get("scan_renders") or [])))
-    return {"item_render_seconds": render_s,"workers": workers, "start_and_warm_s": t_start, "wall_s": wall,
+                                       list(ref.get("renders") or []) + list(ref.get("scan_renders") or [])
+                                       + list(ref.get("line_search_renders") or [])))
+    # the worker processes' own CPU seconds over the batch (items, their render chunks, Dask's threads): what the
+    # run really used; the items' process_time sums double-count items that overlap in one process
+    worker_cpu = sum(cpu1[a] - cpu0[a] for a in cpu1 if a in cpu0)
+    return {"item_render_seconds": render_s, "workers": workers, "start_and_warm_s": t_start, "wall_s": wall,
+            "worker_cpu_s": worker_cpu, "worker_cores_used": worker_cpu / wall,
+            "chunked": bool(opts.render_chunk_rows) or (opts.render_chunk_rows is None and workers > 1),
+            "item_windows_unix_s": {r["key"]: [r["started_unix_s"], r["finished_unix_s"], r["worker_pid"]]
+                                    for r in rep.records},
             "item_seconds": {r["key"]: r["seconds"] for r in rep.records},
             "item_cpu_seconds": {r["key"]: r["cpu_seconds"] for r in rep.records},
             "digests": {r["key"]: r["digest"] for r in rep.records},
             "worker_pids": sorted({r["worker_pid"] for r in rep.records}),
             "load_before": load0, "load_after": load1, "dask_overhead_per_task_s": overhead}
+
+
+def _max_overlap(windows: dict[str, list[float]]) -> int:
+    """The most items that ran at once on one worker process (from the markers' start and end times)."""
+    best = 0
+    for key, (s0, _e0, pid) in windows.items():
+        best = max(best, sum(1 for s, e, p in windows.values() if p == pid and s <= s0 < e))
+    return best
 
 
 def makespans(items: list[Path], opts: BatchOptions, one: dict[str, Any], two: dict[str, Any]) -> dict[str, Any]:
@@ -110,7 +136,10 @@ def makespans(items: list[Path], opts: BatchOptions, one: dict[str, Any], two: d
     greedy in the batch's order; the time the last item runs alone has its renders (in that item's proportion of
     render seconds) shared by both workers (chunking's transfers and the chunks' own overhead not modelled)."""
     resolved = [classify_item(p) for p in items]
-    best = [one if one["item_cpu_seconds"][it.key] <= two["item_cpu_seconds"][it.key] else two for it in resolved]
+    # with render chunks on 2 workers an item's process_time misses its chunks run on the other worker: then the
+    # 1-worker run's (one item at a time per process, its chunks in it)
+    best = [one if two["chunked"] or one["item_cpu_seconds"][it.key] <= two["item_cpu_seconds"][it.key] else two
+            for it in resolved]
     cost = [float(r["item_cpu_seconds"][it.key]) for r, it in zip(best, resolved)]
     wall = [float(r["item_seconds"][it.key]) for r, it in zip(best, resolved)]
     rend = [min(c, float(r["item_render_seconds"][it.key]) * (c / w if w > 0 else 1.0))
@@ -144,9 +173,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--spp", type=int, default=8, help="reference spp (default 8)")
     ap.add_argument("--iterations", type=int, default=2, help="reference iterations (default 2)")
     ap.add_argument("--serial", action="store_true", help="also the in-process serial run (workers=0)")
-    ap.add_argument("--render-chunk-rows", type=int, default=0,
+    ap.add_argument("--render-chunk-rows", type=int, default=None,
                     help="split each reference render into chunks of this many rows across the workers (as "
-                         "`rig estimate batch --render-chunk-rows`; 0: whole renders)")
+                         "`rig estimate batch --render-chunk-rows`; 0: whole renders; default: the batch's automatic "
+                         "chunks, none on 1 worker)")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
     items = scenes(args.items)
@@ -181,22 +211,32 @@ def main(argv: list[str] | None = None) -> int:
            "dask_overhead_per_task_s": two["dask_overhead_per_task_s"], "cpu_count": os.cpu_count(),
            "expected_makespan_2_workers": doc_makespan,
            "cpu_rate_ratio_2_vs_1": (sum(two["item_cpu_seconds"].values()) / two["wall_s"])
-           / (sum(one["item_cpu_seconds"].values()) / one["wall_s"])}
+           / (sum(one["item_cpu_seconds"].values()) / one["wall_s"]),
+           "render_chunk_rows": args.render_chunk_rows,
+           "one_worker_cores_used": one["worker_cores_used"],
+           "one_worker_is_one_core": one["worker_cores_used"] <= 1.05,
+           "max_items_at_once_per_worker": max(_max_overlap(r["item_windows_unix_s"]) for r in runs.values())}
     if args.json:
         print(json.dumps(doc, indent=2))
         return 0
     print(f"# rig estimate batch: {len(items)} zoo scene files, mc-table+reference, {args.spp} spp, "
           f"{args.iterations} iteration(s); {os.cpu_count()} cores")
     print(f"{'workers':>7} {'start+warm s':>12} {'batch wall s':>12} {'sum item s':>10} {'sum item CPU s':>14} "
-          f"{'cores got':>9} {'load before':>16} {'load after':>16}")
+          f"{'cores got':>9} {'worker CPU s':>12} {'CPU/wall':>8} {'load before':>16} {'load after':>16}")
     for w, r in runs.items():
         lb = "/".join(f"{x:.1f}" for x in r["load_before"])
         la = "/".join(f"{x:.1f}" for x in r["load_after"])
         cpu = sum(r["item_cpu_seconds"].values())
         print(f"{w:>7} {r['start_and_warm_s']:>12.1f} {r['wall_s']:>12.1f} {sum(r['item_seconds'].values()):>10.1f} "
-              f"{cpu:>14.1f} {cpu / r['wall_s']:>9.2f} {lb:>16} {la:>16}")
+              f"{cpu:>14.1f} {cpu / r['wall_s']:>9.2f} {r['worker_cpu_s']:>12.1f} {r['worker_cores_used']:>8.2f} "
+              f"{lb:>16} {la:>16}")
     print(f"speed-up 2 vs 1 workers: {speedup:.2f}x (target >= 1.7: {'met' if speedup >= 1.7 else 'NOT met'}); "
           f"CPU-time speed-up (item CPU s per wall s, 2 vs 1): {doc['cpu_rate_ratio_2_vs_1']:.2f}x")
+    chunking = "automatic" if args.render_chunk_rows is None else (f"{args.render_chunk_rows} rows"
+                                                                   if args.render_chunk_rows > 0 else "none")
+    print(f"render chunks: {chunking}; 1-worker run on one core (worker CPU s / wall "
+          f"{one['worker_cores_used']:.2f} <= 1.05): {doc['one_worker_is_one_core']}; most items running at once on "
+          f"one worker: {doc['max_items_at_once_per_worker']}")
     print(f"bit-identical 1 vs 2 workers: {identical}")
     if serial is not None:
         print(f"bit-identical serial (in process, {serial['wall_s']:.1f} s) vs workers: {doc['bit_identical_serial']}")

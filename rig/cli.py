@@ -566,9 +566,11 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--format", choices=["exr", "tiff"], default="exr", help="capture folders: map file format")
     q.add_argument("--calibration", type=Path, default=None, metavar="FILE",
                    help="sessions: calibration file (default: the one each manifest records)")
-    q.add_argument("--render-chunk-rows", type=_int_at_least(0), default=0, metavar="ROWS",
+    q.add_argument("--render-chunk-rows", type=_int_at_least(0), default=None, metavar="ROWS",
                    help="scene files: split each Monte Carlo reference render into chunks of ROWS rows across the "
-                        "workers (the same numbers; helps when there are fewer items than workers; 0: whole renders)")
+                        "workers (the same numbers; helps when fewer items than workers are left; 0: whole renders; "
+                        "default: 2 chunks per item slot on a cluster whose workers advertise the 'item' resource, "
+                        "as --workers N's do, else whole renders)")
     q.add_argument("--no-progress", action="store_true", help="no progress bar (the per-item lines stay)")
     q.add_argument("--json", action="store_true", help="print the batch report as JSON")
     p.set_defaults(func=_cmd_estimate)

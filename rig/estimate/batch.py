@@ -31,9 +31,12 @@ Dask ``priority`` by that rank, so no long item starts last and runs alone (list
 rule, Graham 1969: makespan within 4/3 - 1/(3W) of the optimum; :func:`list_schedule_makespan`). The order changes
 when items run, never their numbers.
 
-Render chunks (``render_chunk_rows`` > 0, CLI ``--render-chunk-rows``): inside an item, each Monte Carlo reference
+Render chunks (``render_chunk_rows``, CLI ``--render-chunk-rows``): inside an item, each Monte Carlo reference
 render of a scene file is split into chunks of rows, each a task on the cluster (:func:`chunked_render`); every pixel
-keeps its random stream, so the numbers do not change. The gradient reference of capture folders and the session
+keeps its random stream, so the numbers do not change. By default (None) on a cluster whose workers advertise the
+item resource (:func:`item_restrictions`) with two or more item slots: :data:`AUTO_CHUNKS_PER_SLOT` chunks per item
+slot, at least :data:`AUTO_MIN_CHUNK_ROWS` rows each (so the long item that runs last spreads its renders over the
+workers the others left idle); else whole renders. 0: whole renders; > 0: chunks of that many rows. The gradient reference of capture folders and the session
 estimates are not chunked (one task per item).
 """
 from __future__ import annotations
@@ -58,7 +61,7 @@ from rig.files.provenance import json_default, write_json
 
 __all__ = ["BatchItem", "BatchOptions", "BatchReport", "classify_item", "content_sha256", "result_digest",
            "expected_cost", "submission_order", "list_schedule_makespan", "run_item", "run_batch", "chunked_render",
-           "local_cluster", "WORKER_ENV", "DONE_FILE", "RESULT_FILE"]
+           "local_cluster", "item_slots", "item_restrictions", "as_completed_in_slots", "WORKER_ENV", "ITEM_RESOURCE", "DONE_FILE", "RESULT_FILE"]
 
 ItemKind = Literal["session", "scene", "capture"]
 DONE_FILE = "done.json"
@@ -85,6 +88,14 @@ _HASH_CHUNK = 1 << 20
 #: Dask priority of render-chunk tasks: above the items' (1..N, longest expected first), so the chunks of a started
 #: item run before further items start (an item waiting on its chunks has left its worker slot)
 CHUNK_PRIORITY = 1 << 30
+#: Dask worker resource held by each running item (:func:`local_cluster` gives every worker one per thread): an item
+#: waiting on its render chunks secedes from its thread slot (``worker_client``) but keeps its resources until it
+#: ends (distributed's worker state machine releases them only when the task finishes, the scheduler alike), so the
+#: freed slot runs chunks, never a second item: a one-thread worker stays one core. Render chunks carry none.
+ITEM_RESOURCE = "item"
+#: automatic render chunks (``render_chunk_rows=None``): chunks per render per item slot of the cluster, and the
+#: fewest rows of a chunk (each chunk task carries the scene and pays Dask's ~4-30 ms)
+AUTO_CHUNKS_PER_SLOT, AUTO_MIN_CHUNK_ROWS = 2, 8
 #: threads hashing the items' inputs on the calling machine (SHA-256 ran at ~450 MB/s per core here)
 HASH_THREADS = 8
 
@@ -118,9 +129,10 @@ class BatchOptions:
     reference: bool = False
     maps_format: str = "exr"
     calibration: str | None = None
-    #: > 0: each Monte Carlo reference render of a scene split into chunks of this many rows across the workers
-    #: (bit-identical to whole renders, so not part of :meth:`for_kind` nor of the done-marker's options)
-    render_chunk_rows: int = 0
+    #: > 0: each Monte Carlo reference render of a scene split into chunks of this many rows across the workers; 0:
+    #: whole renders; None: chosen from the cluster (module docstring). Bit-identical to whole renders, so not part
+    #: of :meth:`for_kind` nor of the done-marker's options
+    render_chunk_rows: int | None = None
 
     def for_kind(self, kind: ItemKind) -> dict[str, Any]:
         """The options that reach an item of this kind (what the done-marker records and compares)."""
@@ -402,14 +414,20 @@ def _stack_chunks(parts: Sequence[Any]) -> Any:
                    cat("d_log_sigma"), cat("d_log_sigma_stderr"))
 
 
-def chunked_render(shape: Any, media: Any, camera: Any, lights: Any, *, chunk_rows: int, **kw: Any) -> Any:
-    """:func:`simulators.mc.render` split into chunks of ``chunk_rows`` rows, each a task on the Dask cluster this
+def chunked_render(shape: Any, media: Any, camera: Any, lights: Any, *, chunk_rows: int = 0, chunks: int = 0,
+                   **kw: Any) -> Any:
+    """:func:`simulators.mc.render` split into chunks of ``chunk_rows`` rows (``chunk_rows`` 0: into ``chunks``
+    chunks of at least :data:`AUTO_MIN_CHUNK_ROWS` rows), each a task on the Dask cluster this
     task runs on (``distributed.worker_client``: the calling task leaves its worker slot while it waits), stacked
     in order. Every pixel keeps its random stream (render's ``rows``), so the image is bit-identical to the whole
     render for any chunking and any number of workers. Outside a Dask worker: the chunks one after another."""
     from simulators.mc import render
 
     h = int(camera.height_px)
+    if chunk_rows <= 0:
+        if chunks < 1:
+            raise ValueError(f"chunk_rows or chunks must be >= 1; got {chunk_rows}, {chunks}")
+        chunk_rows = max(AUTO_MIN_CHUNK_ROWS, -(-h // int(chunks)))
     bounds = [(r, min(h, r + int(chunk_rows))) for r in range(0, h, int(chunk_rows))]
     if len(bounds) == 1:
         return render(shape, media, camera, lights, **kw)
@@ -448,23 +466,24 @@ def _estimate(item: BatchItem, options: dict[str, Any], folder: Path) -> tuple[d
 
 
 def run_item(item: BatchItem, options: dict[str, Any], out_dir: str | os.PathLike[str], sha: str,
-             chunk_rows: int = 0) -> dict[str, Any]:
+             chunk_rows: int = 0, chunks: int = 0) -> dict[str, Any]:
     """The task of one item (runs on a worker, or in this process for the serial run): clear ``OUT/<key>``, run
     the estimate, write ``result.json`` and then ``done.json`` atomically; return the marker's record.
-    ``chunk_rows`` > 0: the scene references' Monte Carlo renders in chunks of that many rows across the cluster
-    (:func:`chunked_render`; the same numbers). Exceptions of the estimate propagate (the batch reports the item
+    ``chunk_rows`` > 0: the scene references' Monte Carlo renders in chunks of that many rows across the cluster,
+    else with ``chunks`` > 0 in that many chunks (:func:`chunked_render`; the same numbers). Exceptions of the estimate propagate (the batch reports the item
     failed; Dask does not retry them)."""
     from functools import partial
 
     from rig.estimate.reference.mc_reference import render_with
     from rig.files.session import software_version
 
-    t0, c0 = time.perf_counter(), time.process_time()
+    t0, c0, started = time.perf_counter(), time.process_time(), time.time()
     folder = Path(out_dir) / item.key
     if folder.exists():     # a killed earlier attempt or an item whose inputs changed: start clean
         shutil.rmtree(folder)
     folder.mkdir(parents=True)
-    with render_with(partial(chunked_render, chunk_rows=chunk_rows) if chunk_rows > 0 else None):
+    chunked = chunk_rows > 0 or chunks > 0
+    with render_with(partial(chunked_render, chunk_rows=chunk_rows, chunks=chunks) if chunked else None):
         result, files = _estimate(item, options, folder)
     write_json(folder / RESULT_FILE, result)
     record = {"format": MARKER_FORMAT, "format_version": 1, "key": item.key, "kind": item.kind,
@@ -473,6 +492,7 @@ def run_item(item: BatchItem, options: dict[str, Any], out_dir: str | os.PathLik
               "success": bool(result.get("success", True)) if isinstance(result, dict) else True,
               "seconds": time.perf_counter() - t0, "cpu_seconds": time.process_time() - c0,
               "worker_pid": os.getpid(), "host": os.uname().nodename, "software_version": software_version(),
+              "started_unix_s": started, "finished_unix_s": time.time(),
               "finished": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())}
     write_json(folder / DONE_FILE, record)
     fsync_dir(folder.parent)
@@ -482,7 +502,8 @@ def run_item(item: BatchItem, options: dict[str, Any], out_dir: str | os.PathLik
 # ------------------------------------------------------------------------------------------------ the batch
 def local_cluster(workers: int, **kw: Any) -> Any:
     """A :class:`distributed.LocalCluster` of ``workers`` processes, one thread each, :data:`WORKER_ENV` set in
-    every worker (restarted workers too: the nanny spawns them with it), no dashboard unless asked."""
+    every worker (restarted workers too: the nanny spawns them with it), one :data:`ITEM_RESOURCE` per worker (one
+    item at a time, its render chunks beside it), no dashboard unless asked."""
     from distributed import LocalCluster
 
     if workers < 1:
@@ -492,7 +513,55 @@ def local_cluster(workers: int, **kw: Any) -> Any:
     kw.setdefault("dashboard_address", None)
     with dask.config.set(NANNY_CONFIG):  # read by each Nanny when it is made (here), kept for its restarts
         return LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
-                            env={**WORKER_ENV, **kw.pop("env", {})}, silence_logs=kw.pop("silence_logs", 40), **kw)
+                            env={**WORKER_ENV, **kw.pop("env", {})}, silence_logs=kw.pop("silence_logs", 40),
+                            resources=kw.pop("resources", {ITEM_RESOURCE: 1}), **kw)
+
+
+def item_slots(client: Any) -> int:
+    """How many items the cluster's workers run at once: the sum of the :data:`ITEM_RESOURCE` they advertise."""
+    workers = client.scheduler_info(n_workers=-1).get("workers", {}).values()
+    return int(sum(float((w.get("resources") or {}).get(ITEM_RESOURCE, 0)) for w in workers))
+
+
+def item_restrictions(client: Any) -> dict[str, Any]:
+    """The ``client.submit`` keywords of an item task: ``resources={ITEM_RESOURCE: 1}`` when a worker of the
+    cluster advertises :data:`ITEM_RESOURCE` (:func:`local_cluster`'s do; on a cluster of one's own: ``dask worker
+    ... --resources item=THREADS``), so a worker runs as many items at once as it has of it; else none (any
+    scheduler without the resource still runs the batch: then an item waiting on its render chunks frees its
+    thread for the next item too, and a worker can run more items than it has threads)."""
+    return {"resources": {ITEM_RESOURCE: 1}} if item_slots(client) >= 1 else {}
+
+
+def as_completed_in_slots(client: Any, submit: Callable[[int], Any], n: int, limited: bool
+                          ) -> Iterable[tuple[int, Any]]:
+    """``submit(0)``, ..., ``submit(n - 1)`` in that order, yielding (i, future) as each completes. ``limited``
+    (items restricted to :data:`ITEM_RESOURCE`): at most :func:`item_slots` (re-read as items end: workers come and
+    go; at least 1) submitted and not yet completed. Why: the scheduler hands resource-restricted tasks to a worker
+    at once (they are not queued), and it queues unrestricted tasks, such as render chunks, while a worker has
+    ``worker-saturation`` x threads tasks processing that have not seceded; items waiting for the item resource
+    count there, so with every item submitted at once the chunks of the running item stayed queued for good
+    (measured: a 1-worker batch of 8 items hung with 7 items constrained on the worker, 2 chunks queued)."""
+    from distributed import as_completed
+
+    done = as_completed()
+    nxt = in_flight = 0
+
+    def fill() -> None:
+        nonlocal nxt, in_flight
+        cap = max(1, item_slots(client)) if limited else n
+        while nxt < n and in_flight < cap:
+            fut = submit(nxt)
+            index[fut.key] = nxt
+            done.add(fut)
+            nxt += 1
+            in_flight += 1
+
+    index: dict[Any, int] = {}
+    fill()
+    for fut in done:
+        in_flight -= 1
+        yield index[fut.key], fut
+        fill()
 
 
 def _progress_bar(total: int, enabled: bool) -> Any:
@@ -558,7 +627,7 @@ def run_batch(items: Sequence[str | os.PathLike[str]], out_dir: str | os.PathLik
             with threadpool_limits(limits=1):
                 for it in todo:
                     try:
-                        rec = run_item(it, opts.for_kind(it.kind), out, shas[it.key], opts.render_chunk_rows)
+                        rec = run_item(it, opts.for_kind(it.kind), out, shas[it.key], opts.render_chunk_rows or 0)
                     except Exception as exc:  # noqa: BLE001 - one failed item does not stop the batch
                         finished(it, None, exc)
                     else:
@@ -578,7 +647,7 @@ def run_batch(items: Sequence[str | os.PathLike[str]], out_dir: str | os.PathLik
 def _run_distributed(todo: list[BatchItem], opts: BatchOptions, out: Path, shas: dict[str, str], client: Any,
                      scheduler: str | None, workers: int, finished: Callable[..., None],
                      say: Callable[[str], None]) -> None:
-    from distributed import Client, as_completed
+    from distributed import Client
 
     own_cluster = own_client = None
     try:
@@ -592,14 +661,21 @@ def _run_distributed(todo: list[BatchItem], opts: BatchOptions, out: Path, shas:
         # longest expected first (module docstring): submitted in that order and with Dask priorities by rank
         costs = [expected_cost(it, opts.for_kind(it.kind), _read_marker(out / it.key)) for it in todo]
         order = submission_order(costs)
-        futures = {}
-        for rank, i in enumerate(order):
-            it = todo[i]
-            futures[client.submit(run_item, it, opts.for_kind(it.kind), str(out), shas[it.key],
-                                   opts.render_chunk_rows, key=f"rig-batch-{it.key}-{shas[it.key][:12]}", pure=False,
-                                   priority=len(order) - rank)] = it
-        for fut in as_completed(list(futures)):
-            it = futures[fut]
+        slots, restrict = item_slots(client), item_restrictions(client)
+        rows = opts.render_chunk_rows
+        chunks = AUTO_CHUNKS_PER_SLOT * slots if rows is None and slots >= 2 else 0
+        if rows is None:
+            say(f"render chunks: {f'{chunks} per render (of >= {AUTO_MIN_CHUNK_ROWS} rows)' if chunks else 'none'} "
+                f"({slots} item slots)")
+
+        def submit(rank: int) -> Any:
+            it = todo[order[rank]]
+            return client.submit(run_item, it, opts.for_kind(it.kind), str(out), shas[it.key], rows or 0, chunks,
+                                 key=f"rig-batch-{it.key}-{shas[it.key][:12]}", pure=False,
+                                 priority=len(order) - rank, **restrict)
+
+        for rank, fut in as_completed_in_slots(client, submit, len(order), bool(restrict)):
+            it = todo[order[rank]]
             try:
                 rec = fut.result()
             except Exception as exc:  # noqa: BLE001 - the task's own error (or too many worker deaths)

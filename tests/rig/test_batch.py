@@ -14,6 +14,7 @@ import signal
 import sys
 import threading
 import time
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +23,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 
 from rig.estimate.batch import (DONE_FILE, RESULT_FILE, BatchItemError, BatchOptions, classify_item,  # noqa: E402
-                       local_cluster, run_batch)
+                                item_restrictions, local_cluster, run_batch)
 
 pytestmark = pytest.mark.timeout(600)
 
@@ -109,10 +110,57 @@ def test_two_workers_bit_identical_to_serial(scenes: list[Path], serial: Any, cl
     assert _digests(report) == _digests(serial)
     pids = {r["worker_pid"] for r in report.records}
     assert os.getpid() not in pids      # ran on the workers, not here
+    assert item_restrictions(client) == {"resources": {"item": 1}}     # local_cluster's workers advertise it
+    for r in report.records:            # one item at a time per worker, while its chunks ran on both
+        for o in report.records:
+            if o is not r and o["worker_pid"] == r["worker_pid"]:
+                assert o["finished_unix_s"] <= r["started_unix_s"] or r["finished_unix_s"] <= o["started_unix_s"]
     for r in report.records:            # the estimates themselves, not only their digests
         a = json.loads((tmp_path / r["key"] / RESULT_FILE).read_text())["parameters"]
         b = json.loads((serial.out_dir / r["key"] / RESULT_FILE).read_text())["parameters"]
         assert a == b
+
+
+def _item_like(seconds: float) -> tuple[float, float]:
+    """An item's shape: two renders of four chunk tasks each (seceding from its thread slot while it waits, as
+    chunked_render does), then it computes on; (start, end) wall times."""
+    from distributed import worker_client
+
+    from rig.estimate.batch import CHUNK_PRIORITY
+
+    t0 = time.time()
+    for _ in range(2):
+        with worker_client() as c:
+            c.gather([c.submit(time.sleep, seconds / 4, pure=False, priority=CHUNK_PRIORITY) for _ in range(4)])
+    time.sleep(seconds)
+    return t0, time.time()
+
+
+@pytest.mark.parametrize("resources", [{"item": 1}, None])
+def test_item_resource_keeps_one_item_per_worker_thread(resources: dict[str, int] | None) -> None:
+    """With the item resource a seceded item (waiting on its chunks) keeps its worker's only item slot: each item
+    starts after the one before ends (and the chunks still run: the items are submitted as slots free,
+    as_completed_in_slots). Without it (a scheduler whose workers do not advertise it), the next item starts while
+    the one before waits: the overlap this rules out. One in-process worker, one thread, three items."""
+    from distributed import Client, LocalCluster
+
+    from rig.estimate.batch import as_completed_in_slots
+
+    with warnings.catch_warnings():     # the module's 2-worker cluster holds the scheduler's default HTTP port
+        warnings.filterwarnings("ignore", "Port .* is already in use", UserWarning)
+        cluster = LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None,
+                               resources=resources)
+    with cluster, Client(cluster) as c:
+        restrict = item_restrictions(c)
+        assert restrict == ({"resources": {"item": 1}} if resources else {})
+        got = {i: f.result(timeout=60) for i, f in as_completed_in_slots(
+            c, lambda i: c.submit(_item_like, 0.2, pure=False, priority=3 - i, **restrict), 3, bool(restrict))}
+    windows = sorted(got.values())
+    overlaps = [min(a1, b1) - max(a0, b0) for (a0, a1), (b0, b1) in zip(windows, windows[1:])]
+    if resources:
+        assert max(overlaps) <= 0, windows
+    else:
+        assert min(overlaps) > 0.1, windows
 
 
 def test_killed_worker_task_reruns_and_batch_matches_serial(scenes: list[Path], serial: Any, client: Any,
