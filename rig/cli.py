@@ -569,7 +569,8 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--render-chunk-rows", type=_int_at_least(0), default=None, metavar="ROWS",
                    help="scene files: split each Monte Carlo reference render into chunks of ROWS rows across the "
                         "workers (the same numbers; helps when fewer items than workers are left; 0: whole renders; "
-                        "default: 2 chunks per item slot on a cluster whose workers advertise the 'item' resource, "
+                        "default: 2 chunks per item slot, at most 8, on a cluster whose workers advertise the "
+                        "'item' resource, "
                         "as --workers N's do, else whole renders)")
     q.add_argument("--no-progress", action="store_true", help="no progress bar (the per-item lines stay)")
     q.add_argument("--json", action="store_true", help="print the batch report as JSON")

@@ -34,10 +34,11 @@ when items run, never their numbers.
 Render chunks (``render_chunk_rows``, CLI ``--render-chunk-rows``): inside an item, each Monte Carlo reference
 render of a scene file is split into chunks of rows, each a task on the cluster (:func:`chunked_render`); every pixel
 keeps its random stream, so the numbers do not change. By default (None) on a cluster whose workers advertise the
-item resource (:func:`item_restrictions`) with two or more item slots: :data:`AUTO_CHUNKS_PER_SLOT` chunks per item
-slot, at least :data:`AUTO_MIN_CHUNK_ROWS` rows each (so the long item that runs last spreads its renders over the
-workers the others left idle); else whole renders. 0: whole renders; > 0: chunks of that many rows. The gradient reference of capture folders and the session
-estimates are not chunked (one task per item).
+item resource (:func:`item_restrictions`) with two or more item slots: :data:`AUTO_CHUNKS_PER_SLOT` chunks per
+item slot, at most :data:`AUTO_MAX_CHUNKS`, at least :data:`AUTO_MIN_CHUNK_ROWS` rows each (so the long item that
+runs last spreads its renders over the workers the others left idle); else whole renders. 0: whole renders; > 0:
+chunks of that many rows. The gradient reference of capture folders and the session estimates are not chunked (one
+task per item).
 """
 from __future__ import annotations
 
@@ -61,7 +62,8 @@ from rig.files.provenance import json_default, write_json
 
 __all__ = ["BatchItem", "BatchOptions", "BatchReport", "classify_item", "content_sha256", "result_digest",
            "expected_cost", "submission_order", "list_schedule_makespan", "run_item", "run_batch", "chunked_render",
-           "local_cluster", "item_slots", "item_restrictions", "as_completed_in_slots", "WORKER_ENV", "ITEM_RESOURCE", "DONE_FILE", "RESULT_FILE"]
+           "local_cluster", "item_slots", "item_restrictions", "as_completed_in_slots", "WORKER_ENV", "ITEM_RESOURCE",
+           "DONE_FILE", "RESULT_FILE"]
 
 ItemKind = Literal["session", "scene", "capture"]
 DONE_FILE = "done.json"
@@ -93,9 +95,10 @@ CHUNK_PRIORITY = 1 << 30
 #: ends (distributed's worker state machine releases them only when the task finishes, the scheduler alike), so the
 #: freed slot runs chunks, never a second item: a one-thread worker stays one core. Render chunks carry none.
 ITEM_RESOURCE = "item"
-#: automatic render chunks (``render_chunk_rows=None``): chunks per render per item slot of the cluster, and the
-#: fewest rows of a chunk (each chunk task carries the scene and pays Dask's ~4-30 ms)
-AUTO_CHUNKS_PER_SLOT, AUTO_MIN_CHUNK_ROWS = 2, 8
+#: automatic render chunks (``render_chunk_rows=None``): chunks per render per item slot of the cluster, at most
+#: AUTO_MAX_CHUNKS (on a big cluster every running item's renders would otherwise be split into thousands of tasks:
+#: each chunk task carries the scene and pays Dask's ~4-30 ms), each of at least AUTO_MIN_CHUNK_ROWS rows
+AUTO_CHUNKS_PER_SLOT, AUTO_MAX_CHUNKS, AUTO_MIN_CHUNK_ROWS = 2, 8, 8
 #: threads hashing the items' inputs on the calling machine (SHA-256 ran at ~450 MB/s per core here)
 HASH_THREADS = 8
 
@@ -470,8 +473,8 @@ def run_item(item: BatchItem, options: dict[str, Any], out_dir: str | os.PathLik
     """The task of one item (runs on a worker, or in this process for the serial run): clear ``OUT/<key>``, run
     the estimate, write ``result.json`` and then ``done.json`` atomically; return the marker's record.
     ``chunk_rows`` > 0: the scene references' Monte Carlo renders in chunks of that many rows across the cluster,
-    else with ``chunks`` > 0 in that many chunks (:func:`chunked_render`; the same numbers). Exceptions of the estimate propagate (the batch reports the item
-    failed; Dask does not retry them)."""
+    else with ``chunks`` > 0 in that many chunks (:func:`chunked_render`; the same numbers). Exceptions of the
+    estimate propagate (the batch reports the item failed; Dask does not retry them)."""
     from functools import partial
 
     from rig.estimate.reference.mc_reference import render_with
@@ -663,7 +666,7 @@ def _run_distributed(todo: list[BatchItem], opts: BatchOptions, out: Path, shas:
         order = submission_order(costs)
         slots, restrict = item_slots(client), item_restrictions(client)
         rows = opts.render_chunk_rows
-        chunks = AUTO_CHUNKS_PER_SLOT * slots if rows is None and slots >= 2 else 0
+        chunks = min(AUTO_MAX_CHUNKS, AUTO_CHUNKS_PER_SLOT * slots) if rows is None and slots >= 2 else 0
         if rows is None:
             say(f"render chunks: {f'{chunks} per render (of >= {AUTO_MIN_CHUNK_ROWS} rows)' if chunks else 'none'} "
                 f"({slots} item slots)")
