@@ -76,6 +76,54 @@ def scenes(n: int) -> list[Path]:
     return [build_scene(quick_variant(s), HERE / "out" / "zoo")[0] / "scene.toml" for s in specs]
 
 
+class RunnableSampler:
+    """Samples, every ``period_s``, whether each worker process has a thread in state R (running or waiting for a
+    CPU: ``/proc/PID/task/*/stat``; Linux). A worker waiting on its chunks or with no task has none. Runnable seconds
+    per worker ~ the wall time it wanted a core; on a loaded machine its CPU seconds are less (the other jobs took
+    the rest). If the load slows every worker alike, the batch on idle cores would take ~ wall x sum(CPU s) /
+    sum(runnable s): an estimate, not a measurement (the load is not uniform in time)."""
+
+    def __init__(self, pids: list[int], period_s: float = 0.05) -> None:
+        import threading
+
+        self.pids, self.period_s = pids, period_s
+        self.samples = 0
+        self.runnable = {p: 0 for p in pids}
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+
+    def _has_runnable_thread(self, pid: int) -> bool:
+        for task in Path(f"/proc/{pid}/task").iterdir():
+            try:
+                stat = (task / "stat").read_text()
+            except OSError:
+                continue
+            if stat[stat.rindex(")") + 2] == "R":
+                return True
+        return False
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.period_s):
+            try:
+                hits = {p: self._has_runnable_thread(p) for p in self.pids}
+            except OSError:         # a worker gone (restarted): skip the sample
+                continue
+            self.samples += 1
+            for p, hit in hits.items():
+                self.runnable[p] += hit
+
+    def __enter__(self) -> "RunnableSampler":
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def runnable_fraction(self) -> dict[int, float]:
+        return {p: n / max(1, self.samples) for p, n in self.runnable.items()}
+
+
 def run_workers(items: list[Path], opts: BatchOptions, workers: int, out: Path) -> dict[str, Any]:
     from distributed import Client
 
@@ -85,9 +133,11 @@ def run_workers(items: list[Path], opts: BatchOptions, workers: int, out: Path) 
         client.run(_warm)
         t_start = time.perf_counter() - t0
         load0 = os.getloadavg()
+        pids = client.run(os.getpid)
         cpu0 = client.run(_process_cpu_s)
         t1 = time.perf_counter()
-        rep = run_batch(items, out, options=opts, client=client)
+        with RunnableSampler(sorted(pids.values())) as sampler:
+            rep = run_batch(items, out, options=opts, client=client)
         wall = time.perf_counter() - t1
         cpu1 = client.run(_process_cpu_s)
         load1 = os.getloadavg()
@@ -107,8 +157,12 @@ def run_workers(items: list[Path], opts: BatchOptions, workers: int, out: Path) 
     # the worker processes' own CPU seconds over the batch (items, their render chunks, Dask's threads): what the
     # run really used; the items' process_time sums double-count items that overlap in one process
     worker_cpu = sum(cpu1[a] - cpu0[a] for a in cpu1 if a in cpu0)
+    runnable_s = sum(sampler.runnable_fraction().values()) * wall
     return {"item_render_seconds": render_s, "workers": workers, "start_and_warm_s": t_start, "wall_s": wall,
             "worker_cpu_s": worker_cpu, "worker_cores_used": worker_cpu / wall,
+            "worker_runnable_fraction": {str(p): f for p, f in sampler.runnable_fraction().items()},
+            "worker_runnable_s": runnable_s, "runnable_samples": sampler.samples,
+            "idle_cores_wall_estimate_s": wall * worker_cpu / runnable_s if runnable_s > 0 else None,
             "chunked": bool(opts.render_chunk_rows) or (opts.render_chunk_rows is None and workers > 1),
             "item_windows_unix_s": {r["key"]: [r["started_unix_s"], r["finished_unix_s"], r["worker_pid"]]
                                     for r in rep.records},
@@ -214,6 +268,9 @@ def main(argv: list[str] | None = None) -> int:
            / (sum(one["item_cpu_seconds"].values()) / one["wall_s"]),
            "render_chunk_rows": args.render_chunk_rows,
            "one_worker_cores_used": one["worker_cores_used"],
+           "speedup_2_vs_1_idle_cores_estimate": (one["idle_cores_wall_estimate_s"] / two["idle_cores_wall_estimate_s"]
+                                                  if one["idle_cores_wall_estimate_s"]
+                                                  and two["idle_cores_wall_estimate_s"] else None),
            "one_worker_is_one_core": one["worker_cores_used"] <= 1.05,
            "max_items_at_once_per_worker": max(_max_overlap(r["item_windows_unix_s"]) for r in runs.values())}
     if args.json:
@@ -237,6 +294,11 @@ def main(argv: list[str] | None = None) -> int:
     print(f"render chunks: {chunking}; 1-worker run on one core (worker CPU s / wall "
           f"{one['worker_cores_used']:.2f} <= 1.05): {doc['one_worker_is_one_core']}; most items running at once on "
           f"one worker: {doc['max_items_at_once_per_worker']}")
+    est = doc["speedup_2_vs_1_idle_cores_estimate"]
+    print("runnable fraction of each worker process (sampled every 50 ms): " + "; ".join(
+        f"{w} worker(s) " + ", ".join(f"{f:.2f}" for f in r["worker_runnable_fraction"].values())
+        + f" -> wall on idle cores ~ {r['idle_cores_wall_estimate_s']:.1f} s" for w, r in runs.items())
+        + (f"; estimated speed-up on idle cores {est:.2f}x (an estimate: wall x CPU s / runnable s)" if est else ""))
     print(f"bit-identical 1 vs 2 workers: {identical}")
     if serial is not None:
         print(f"bit-identical serial (in process, {serial['wall_s']:.1f} s) vs workers: {doc['bit_identical_serial']}")

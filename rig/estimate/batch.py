@@ -522,7 +522,11 @@ def local_cluster(workers: int, **kw: Any) -> Any:
 
 def item_slots(client: Any) -> int:
     """How many items the cluster's workers run at once: the sum of the :data:`ITEM_RESOURCE` they advertise."""
-    workers = client.scheduler_info(n_workers=-1).get("workers", {}).values()
+    try:        # n_workers=-1: every worker, asked explicitly
+        info = client.scheduler_info(n_workers=-1)
+    except TypeError:   # a distributed without the argument (it lists them all)
+        info = client.scheduler_info()
+    workers = info.get("workers", {}).values()
     return int(sum(float((w.get("resources") or {}).get(ITEM_RESOURCE, 0)) for w in workers))
 
 
