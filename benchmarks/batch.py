@@ -6,7 +6,9 @@ one batch on a LocalCluster of 1 worker process and then of 2 (one thread each, 
 from one run:
 
 - per worker count: cluster start + warm-up (every worker imports the estimators and loads numba's cached kernels
-  before the clock of the batch starts), the batch's wall time, the sum of the items' seconds on the workers;
+  before the clock of the batch starts), the batch's wall time, the sum of the items' seconds on the workers, the
+  worker processes' own CPU seconds and CPU / wall (the 1-worker run should be one core: <= 1.05), the most items at
+  once on one worker, and each worker's runnable fraction with a rough idle-core estimate (:class:`RunnableSampler`);
 - the speed-up = wall(1 worker) / wall(2 workers) (anchor: the 1-worker batch of the same run; target >= 1.7),
   the CPU seconds the items got per wall second ("cores got": on a machine shared with other jobs, what the
   workers were given; its 2-vs-1 ratio says how much more CPU two workers got than one), and
