@@ -403,35 +403,58 @@ def list_schedule_makespan(seconds: Sequence[float], workers: int) -> float:
 
 # ------------------------------------------------------------------------------------------------ render chunks
 def _stack_chunks(parts: Sequence[Any]) -> Any:
-    """One :class:`simulators.mc.MCImage` from the images of consecutive row chunks (in order)."""
+    """One :class:`simulators.mc.MCImage` from the images of interleaved row chunks: part k holds the frame's rows
+    k, k + n, k + 2n, ... (n = len(parts); :func:`chunk_row_sets`)."""
     from simulators.mc.render import MCImage
 
+    n = len(parts)
     n_paths = [max(1, int(p.mask.sum())) for p in parts]
     w = sum(n_paths)
-    cat = (lambda name: None if getattr(parts[0], name) is None else
-           np.concatenate([getattr(p, name) for p in parts], axis=0))
-    return MCImage(cat("radiance"), cat("stderr"), cat("mask"), parts[0].spp, parts[0].seed,
+    h = sum(p.mask.shape[0] for p in parts)
+
+    def put(name: str) -> Any:
+        if getattr(parts[0], name) is None:
+            return None
+        first = getattr(parts[0], name)
+        out = np.empty((h,) + first.shape[1:], dtype=first.dtype)
+        for k, p in enumerate(parts):
+            out[k::n] = getattr(p, name)
+        return out
+
+    return MCImage(put("radiance"), put("stderr"), put("mask"), parts[0].spp, parts[0].seed,
                    float(sum(p.seconds for p in parts)),
-                   float(sum(p.mean_collisions * n for p, n in zip(parts, n_paths)) / w),
-                   float(sum(p.truncated_fraction * n for p, n in zip(parts, n_paths)) / w),
-                   cat("d_log_sigma"), cat("d_log_sigma_stderr"))
+                   float(sum(p.mean_collisions * n_p for p, n_p in zip(parts, n_paths)) / w),
+                   float(sum(p.truncated_fraction * n_p for p, n_p in zip(parts, n_paths)) / w),
+                   put("d_log_sigma"), put("d_log_sigma_stderr"))
+
+
+def chunk_row_sets(height_px: int, chunk_rows: int = 0, chunks: int = 0) -> list[tuple[int, int, int]]:
+    """The row sets of a render split into chunks, as :func:`simulators.mc.render` ``rows`` = (k, height_px, n):
+    chunk k takes the rows k, k + n, ... (interleaved, so every chunk gets an equal share of the object: measured on
+    the zoo's z19 at 64 spp, contiguous quarters of the frame cost 0.2 / 2.1 / 2.2 / 0.2 CPU s, the two middle
+    ones carrying the cube). n = ceil(height_px / chunk_rows) for ``chunk_rows`` > 0, else ``chunks`` capped so a
+    chunk keeps at least :data:`AUTO_MIN_CHUNK_ROWS` rows."""
+    h = int(height_px)
+    if chunk_rows > 0:
+        n = -(-h // int(chunk_rows))
+    elif chunks >= 1:
+        n = max(1, min(int(chunks), h // AUTO_MIN_CHUNK_ROWS))
+    else:
+        raise ValueError(f"chunk_rows or chunks must be >= 1; got {chunk_rows}, {chunks}")
+    n = max(1, min(n, h))
+    return [(k, h, n) for k in range(n)]
 
 
 def chunked_render(shape: Any, media: Any, camera: Any, lights: Any, *, chunk_rows: int = 0, chunks: int = 0,
                    **kw: Any) -> Any:
-    """:func:`simulators.mc.render` split into chunks of ``chunk_rows`` rows (``chunk_rows`` 0: into ``chunks``
-    chunks of at least :data:`AUTO_MIN_CHUNK_ROWS` rows), each a task on the Dask cluster this
-    task runs on (``distributed.worker_client``: the calling task leaves its worker slot while it waits), stacked
-    in order. Every pixel keeps its random stream (render's ``rows``), so the image is bit-identical to the whole
-    render for any chunking and any number of workers. Outside a Dask worker: the chunks one after another."""
+    """:func:`simulators.mc.render` split into interleaved row chunks (:func:`chunk_row_sets`: ``chunk_rows`` rows
+    each, or ``chunks`` chunks), each a task on the Dask cluster this task runs on (``distributed.worker_client``:
+    the calling task leaves its worker slot while it waits), put back in place. Every pixel keeps its random stream
+    (render's ``rows``), so the image is bit-identical to the whole render for any chunking and any number of
+    workers. Outside a Dask worker: the chunks one after another."""
     from simulators.mc import render
 
-    h = int(camera.height_px)
-    if chunk_rows <= 0:
-        if chunks < 1:
-            raise ValueError(f"chunk_rows or chunks must be >= 1; got {chunk_rows}, {chunks}")
-        chunk_rows = max(AUTO_MIN_CHUNK_ROWS, -(-h // int(chunks)))
-    bounds = [(r, min(h, r + int(chunk_rows))) for r in range(0, h, int(chunk_rows))]
+    bounds = chunk_row_sets(int(camera.height_px), chunk_rows, chunks)
     if len(bounds) == 1:
         return render(shape, media, camera, lights, **kw)
     try:

@@ -176,7 +176,7 @@ def _trace_path(kind, prm, nbox, nidx, tris, eps_t, nudge, convex, stack, inside
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
-def _render_kernel(origins, dirs, spp, seed, channel, pixel_offset, kind, prm, nbox, nidx, tris, eps_t, nudge, convex,
+def _render_kernel(origins, dirs, spp, seed, channel, pixel_ids, kind, prm, nbox, nidx, tris, eps_t, nudge, convex,
                    sigma_t, albedo, g, eta, rr_weight, rr_survival, max_collisions,
                    light_pos, light_int, light_cdf, sample_one, n_scan, nee_tau,
                    env_map, has_map, aff, has_aff, include_specular, max_bounces, want_d, env_rest, env_nee, far_mm, chain_prm, chain_k,
@@ -218,7 +218,7 @@ def _render_kernel(origins, dirs, spp, seed, channel, pixel_offset, kind, prm, n
         trunc = 0
         if (ok and beta0 > 0.0) or spec_paths:
             for k in range(spp):
-                state = stream(seed, channel, p + pixel_offset, k)
+                state = stream(seed, channel, pixel_ids[p], k)
                 state0 = state
                 val = 0.0
                 val_s = 0.0
@@ -309,7 +309,7 @@ def render(shape: Shape, media: Medium | Sequence[Medium], camera: Any, lights: 
            seed: int = 0, include_specular: bool = False, nee_tau: float = 1.0, rr_weight: float = 0.01,
            rr_survival: float = 0.1, max_collisions: int = 1_000_000, max_bounces: int = 64,
            n_scan: int = 32, max_sampled_lights: int = 8, derivatives: bool = False, env_nee: bool = True,
-           fd_log_sigma_s: float = 0.0, rows: tuple[int, int] | None = None,
+           fd_log_sigma_s: float = 0.0, rows: tuple[int, int] | tuple[int, int, int] | None = None,
            env_chain_reflections: int | None = None) -> MCImage:
     """Render ``shape`` filled with ``media`` (one :class:`Medium` per colour channel, all with the same eta) as
     seen by ``camera`` (anything with ``width_px``, ``height_px``, ``pixel_rays()``: PinholeCamera,
@@ -326,9 +326,10 @@ def render(shape: Shape, media: Medium | Sequence[Medium], camera: Any, lights: 
     score-function estimate's variance grows with the number of collisions — measured on an apple-R box at 64 spp,
     per-patch noise ~2.5x the derivative's magnitude — where the paired difference stays well below it; it costs
     one more trace per sample. d/d log sigma_a stays the score function (~10 % per patch).
-    ``rows`` = (r0, r1): render only the frame's rows r0 <= row < r1 (an image of r1 - r0 rows); every pixel keeps
-    the random stream it has in the whole frame, so chunks of rows stacked in order are bit-identical to the whole
-    render (``rig.estimate.batch`` splits a render across Dask workers this way).
+    ``rows`` = (r0, r1) or (r0, r1, step): render only the frame's rows r0, r0 + step, ... < r1 (an image of those
+    rows, in order); every pixel keeps the random stream it has in the whole frame, so chunks of rows put back in
+    place are bit-identical to the whole render (``rig.estimate.batch`` splits a render across Dask workers this
+    way: interleaved rows, step = the number of chunks, so every chunk gets an equal share of the object).
     ``env_nee``: sample an environment map's bright pixels by next-event estimation (:mod:`.walk`; not for
     refracting non-convex meshes, whose connections are not supported, nor refracting convex meshes of more than
     :data:`ENV_NEE_MAX_FLAT_FACES` flat faces: there escaping paths find them; through refracting convex meshes and
@@ -355,12 +356,15 @@ def render(shape: Shape, media: Medium | Sequence[Medium], camera: Any, lights: 
         assert refracted_point_lights_supported(geo)       # every shape since issue 17 (BVH connections)
     origins, dirs = camera.pixel_rays()
     h, w = camera.height_px, camera.width_px
-    r0, r1 = (0, h) if rows is None else (int(rows[0]), int(rows[1]))
-    if not 0 <= r0 < r1 <= h:
-        raise ValueError(f"rows must be (r0, r1) with 0 <= r0 < r1 <= height_px = {h}; got {rows!r}")
-    h = r1 - r0
-    o = np.ascontiguousarray(origins.reshape(-1, 3)[r0 * w:r1 * w], dtype=np.float64)
-    d = np.ascontiguousarray(dirs.reshape(-1, 3)[r0 * w:r1 * w], dtype=np.float64)
+    r0, r1, step = (0, h, 1) if rows is None else (int(rows[0]), int(rows[1]), int(rows[2]) if len(rows) > 2 else 1)
+    if not (0 <= r0 < r1 <= h and step >= 1 and len(rows or ()) in (0, 2, 3)):
+        raise ValueError(f"rows must be (r0, r1) or (r0, r1, step) with 0 <= r0 < r1 <= height_px = {h} and "
+                         f"step >= 1; got {rows!r}")
+    row_idx = np.arange(r0, r1, step)
+    h = len(row_idx)
+    pixel_ids = (row_idx[:, None] * w + np.arange(w)[None, :]).ravel().astype(np.int64)
+    o = np.ascontiguousarray(origins.reshape(-1, 3)[pixel_ids], dtype=np.float64)
+    d = np.ascontiguousarray(dirs.reshape(-1, 3)[pixel_ids], dtype=np.float64)
     n = len(o)
     rad = np.zeros((n, len(ms)))
     se = np.zeros((n, len(ms)))
@@ -415,7 +419,7 @@ def render(shape: Shape, media: Medium | Sequence[Medium], camera: Any, lights: 
         d_c = np.zeros((n if want_d else 1, 2))
         d_se_c = np.zeros((n if want_d else 1, 2))
         sample_one = len(L.positions_mm) > max_sampled_lights
-        _render_kernel(o, d, int(spp), int(seed), c, r0 * w, geo.kind, geo.params, geo.nodes_box, geo.nodes_idx,
+        _render_kernel(o, d, int(spp), int(seed), c, pixel_ids, geo.kind, geo.params, geo.nodes_box, geo.nodes_idx,
                        geo.triangles, geo.eps_t, geo.nudge, geo.convex, m.sigma_t_per_mm, m.albedo, m.g, m.eta,
                        float(rr_weight), float(rr_survival), int(max_collisions),
                        L.positions_mm, L.intensity, L.cdf, sample_one, int(n_scan), float(nee_tau),

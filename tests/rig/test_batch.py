@@ -23,7 +23,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 
 from rig.estimate.batch import (DONE_FILE, RESULT_FILE, BatchItemError, BatchOptions, classify_item,  # noqa: E402
-                                item_restrictions, local_cluster, run_batch)
+                                chunk_row_sets, item_restrictions, local_cluster, run_batch)
 
 pytestmark = pytest.mark.timeout(600)
 
@@ -91,8 +91,14 @@ def test_chunked_render_is_bit_identical_to_whole_render() -> None:
         for name in ("radiance", "stderr", "mask", "d_log_sigma", "d_log_sigma_stderr"):
             assert np.array_equal(getattr(part, name), getattr(whole, name)), (rows, name)
     assert whole.mask.any() and not whole.mask.all()
-    with pytest.raises(ValueError, match="rows"):
-        render(*scene, rows=(5, 11), **kw)
+    # interleaved chunks share the object: every chunk's hit count within one row's pixels of the others'
+    hits = [int(render(*scene, rows=b, **kw).mask.sum()) for b in chunk_row_sets(10, chunk_rows=1)]
+    assert len(hits) == 10 and sum(hits) == int(whole.mask.sum())
+    halves = [int(render(*scene, rows=b, **kw).mask.sum()) for b in chunk_row_sets(10, chunk_rows=5)]
+    assert abs(halves[0] - halves[1]) <= cam.width_px
+    for bad in ((5, 11), (0, 10, 0), (0, 10, 1, 1)):
+        with pytest.raises(ValueError, match="rows"):
+            render(*scene, rows=bad, **kw)
 
 
 def test_two_workers_bit_identical_to_serial(scenes: list[Path], serial: Any, client: Any,
