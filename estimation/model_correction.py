@@ -104,8 +104,6 @@ from .reference_intervals import (_ASSUMED_SLOPE, FLAT_SPAN, MISFIT_CHI2, RESOLV
                                   _cover, _derivative_noise_factor, _flat_likelihood, _huber_sum, _hull,
                                   _secant_slope, _widen)
 from .ridge_scan import LINE_CHECK_SEED_OFFSETS, on_the_ridge, ridge_channels, ridge_line_search, scan_ridge
-from .sample_count_levels import (FINAL_SPP_FRACTION, RENDER_NOISE_FRACTION, TOP_SPP_RENDERS, _noise_matched_level,
-                                  _to_top_level, wide_ahead)
 from .single_image import (MAX_OK_INTERVAL_RATIO, Lights, Patches, SingleImageResult, _box_qp_2d,
                            estimate_single_image, map_parameters, parameter_status, patch_irradiance, predict_radiance,
                            sigma_a_verdict)
@@ -127,6 +125,14 @@ START_SSP_RANGE: tuple[float, float] = (0.02, 50.0)
 TRUST_RADIUS_START, TRUST_RADIUS_MIN, TRUST_RADIUS_MAX = 0.7, 0.01, 3.0
 #: step of the fast model's central differences in log parameters
 _FAST_FD_STEP = 1e-3
+#: a reference with sample-count levels (issue 19): after its first render, at the cheapest level, the loop renders at
+#: the cheapest level whose noise, carried to the parameters (sd ~ 1/sqrt(spp)), is at most this fraction of the plain
+#: fit's standard error, every channel and parameter: it then adds at most 1 + 0.5^2 = 1.25x to their variance
+#: (~12 % to an interval, which carries it: the refits weigh the correction's variance)
+RENDER_NOISE_FRACTION: float = 0.5
+#: re-checked after every refit (the refit's errors; never lowered) up to the final level, the first of at least this
+#: fraction of the top spp, where the loop converges and ends (cheap renders' bias: zoo z09, z27, z18; issue 19)
+FINAL_SPP_FRACTION: float = 0.5
 
 
 class ReferenceRenderer(Protocol):
@@ -360,6 +366,47 @@ def estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, ligh
                                         scan_reference, refine_reference)
 
 
+def _noise_matched_level(reference: Any, q: Array, se: Array, jac: Array, metric: Array, se_fit: Array,
+                         spp0: float | None = None) -> tuple[int, float]:
+    """The cheapest sample-count level of ``reference`` whose render noise, carried to the parameters, is at most
+    :data:`RENDER_NOISE_FRACTION` of the fit's standard errors ``se_fit`` (C, 2; log parameters, the plain fit's).
+
+    The render's per-patch standard errors ``se`` (m, C) at ``reference.current_spp`` enter the weighted
+    least-squares solution through the model's Jacobian ``jac`` (m, C, 2) with weights 1 / ``metric``^2: its
+    covariance is A^-1 (J^T W S W J) A^-1, A = J^T W J (the sandwich of a linear fit; Seber & Wild, Nonlinear
+    Regression, 1989, sec. 2.1); it scales as 1 / spp. Parameters whose ``se_fit`` is not finite are left out;
+    none left: the top level. ``spp0``: the sample count ``se`` was rendered at (default ``reference.current_spp``).
+    Returns (level, the largest ratio render sd / fit se at the rendered spp)."""
+    n_ch = q.shape[1]
+    ratios = []
+    for c in range(n_ch):
+        ok = np.isfinite(q[:, c]) & np.isfinite(se[:, c]) & np.isfinite(metric[:, c]) & (metric[:, c] > 0) \
+            & np.all(np.isfinite(jac[:, c]), axis=1)
+        if ok.sum() < 3:
+            continue
+        j = jac[ok, c]
+        w = 1.0 / metric[ok, c] ** 2
+        a = (j * w[:, None]).T @ j
+        b = (j * (w ** 2 * se[ok, c] ** 2)[:, None]).T @ j
+        try:
+            a_inv = np.linalg.inv(a)
+        except np.linalg.LinAlgError:
+            continue
+        sd = np.sqrt(np.maximum(np.diag(a_inv @ b @ a_inv), 0.0))
+        for k in range(2):
+            if np.isfinite(se_fit[c, k]) and se_fit[c, k] > 0 and np.isfinite(sd[k]):
+                ratios.append(sd[k] / se_fit[c, k])
+    levels = [int(x) for x in reference.spp_levels]
+    if not ratios:
+        return len(levels) - 1, float("nan")
+    r = float(max(ratios))
+    spp0 = float(reference.current_spp if spp0 is None else spp0)
+    for i, n in enumerate(levels):
+        if r * np.sqrt(spp0 / n) <= RENDER_NOISE_FRACTION:
+            return i, r
+    return len(levels) - 1, r
+
+
 def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lights: Lights, eta: float,
                              reference: ReferenceRenderer, noise_sigma: ArrayLike | None, base_model: str,
                              max_iterations: int, rel_tol: float, seed: int, smooth_spacings: float,
@@ -446,7 +493,6 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
     if n_levels > 1:
         reference.set_level(0)
     level_info: dict[str, Any] | None = None
-    escalated = False  # TOP_SPP_RENDERS at the top level (once)
     n_max = max_iterations
     it = 0
     while it < n_max:
@@ -595,7 +641,6 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
                                    accepted.tolist(), rho.tolist(), radius.max(axis=1).tolist(), objective.tolist(),
                                    np.mean(acc.additive, axis=0).tolist(), with_derivatives, acc.matrix.tolist(),
                                    spp_now))
-        top = n_levels > 1 and spp_now < int(reference.spp_levels[-1]) and TOP_SPP_RENDERS > 0 and not escalated
         if it >= min_iterations and np.all(converged):
             if n_levels > 1 and spp_now < int(reference.spp_levels[lv_final]):
                 # cheap renders' bias holds a fixed point off (z27: -19.8 % at 16 spp, +5.3 % at 128): converge at
@@ -603,19 +648,11 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
                 reference.set_level(max(lv_final, int(getattr(reference, "level", 0))))
                 level_info.update(chosen_spp=int(reference.current_spp), final_level_renders=True)
                 n_max = max(n_max, it + 1)
-            elif top and wide_ahead(fit.sigma_s_prime_ci_per_mm, theta_fit[:, 0], _derivative_noise_factor(
-                    acc, metric)[:, 0] if with_derivatives else np.ones(n_ch)).any():
-                # converged below the top level on an interval that would not be "ok" (z18): the top level
-                escalated = _to_top_level(reference, level_info, it, "converged, wide")
-                n_max = it + TOP_SPP_RENDERS
             else:
                 break
         elif n_levels > 1 and it == n_max - 1 and int(getattr(reference, "level", 0)) < lv_final:
             reference.set_level(lv_final)  # the budget's last render at the final level at least (z09)
             level_info["chosen_spp"] = int(reference.current_spp)
-        elif top and it == n_max:  # not converged on cheaper renders: the top level (z27, z11)
-            escalated = _to_top_level(reference, level_info, it, "not converged")
-            n_max += TOP_SPP_RENDERS
         theta_try = theta_fit
     assert acc is not None and acc_fit is not None and metric is not None and huber_scale is not None
     # The ridge line search (issue 15: the sky-lit boxes z02, z11). No channel converged within the budget: ask the

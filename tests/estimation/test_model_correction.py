@@ -393,36 +393,6 @@ def test_sample_count_matched_to_the_fits_noise(observed, top_noise, want_spp):
 
 
 
-def test_loop_not_converged_on_cheap_renders_continues_at_the_top_level(observed):
-    """Issue 19 (zoo z27, z11): a budget spent on renders below the top level without convergence continues with
-    up to TOP_SPP_RENDERS renders at the top level (the cheap renders' fixed point is off by their seed's
-    realization); here one 16-spp render, then the loop converges on its first 128-spp render, its interval holds
-    the truth."""
-    from estimation.sample_count_levels import TOP_SPP_RENDERS
-    obs, sig = observed
-    ref = Levelled(_distorted_value, rel_noise_at_top=0.002)
-    r = estimate_with_reference(obs, PAT, LIGHT, ETA, ref, noise_sigma=sig, max_iterations=1, model_error=0.005)
-    info = r.extra["sample_count_levels"]
-    assert ref.spp_calls[0] == 16 and set(ref.spp_calls[1:]) == {128}, ref.spp_calls
-    assert 2 <= len(ref.spp_calls) <= 1 + TOP_SPP_RENDERS, ref.spp_calls
-    assert info["top_level_why"] == "not converged" and info["top_level_renders_from"] == 2, info
-    assert r.extra["converged"]
-    lo, hi = r.sigma_s_prime_ci_per_mm[0]
-    assert lo <= TRUTH[0] <= hi, (lo, hi)
-
-
-def test_wide_ahead_predicts_the_widened_interval_against_the_ok_line():
-    """estimation.sample_count_levels.wide_ahead: the refit's sigma_s' interval widened (in log, about the
-    estimate) by the derivative-noise factor, against MAX_OK_INTERVAL_RATIO (1.5); no interval: wide."""
-    from estimation.sample_count_levels import wide_ahead
-    ci = np.array([[1.0, 1.2], [1.0, 2.0], [0.0, 3.0]])
-    est = np.log([1.1, 1.4, 1.0])
-    np.testing.assert_array_equal(wide_ahead(ci, est, np.ones(3)), [False, True, True])
-    # a factor 3 takes 1.2 / 1.0 to 1.2^3 = 1.73 > 1.5
-    np.testing.assert_array_equal(wide_ahead(ci, est, [3.0, 1.0, 1.0]), [True, True, True])
-    np.testing.assert_array_equal(wide_ahead(None, est, np.ones(3)), [True, True, True])
-
-
 def test_ridge_line_search_runs_when_nothing_converged(observed):
     """Issue 15 (the sky-lit boxes): a budget spent without convergence ends with the ridge line search on
     ``refine_reference`` (at the level whose noise matches the fit's: the top one for a reference without
