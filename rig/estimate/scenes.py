@@ -388,10 +388,11 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
 
         res, reference_out = run_reference(mode != "legacy")
         if mode == "hybrid":
-            # the adaptive loop's estimate stands where every channel's sigma_s' is "ok"; else the legacy loop's
-            # from the start (the same renders and estimate as --reference-mode legacy; provenance: hybrid_fallback)
+            # the adaptive loop's estimate stands where every channel's sigma_s' is "ok" (or where it had one level
+            # only: it was the legacy loop); else the legacy loop's from the start (the same renders and estimate as
+            # --reference-mode legacy; provenance: hybrid_fallback)
             st = (res.extra.get("status") or {}).get("sigma_s_prime_per_mm") if res else None
-            if not (st and all(x == "ok" for x in st)):
+            if len(reference_out["spp_levels"]) > 1 and not (st and all(x == "ok" for x in st)):
                 first, first_info = res, reference_out
                 res, reference_out = run_reference(False)
                 reference_out["hybrid_fallback"] = {
