@@ -52,7 +52,9 @@ REFERENCE_MODES = ("adaptive", "hybrid", "legacy")
 REFINE_SPP_FACTORS = (2, 4, 8)
 #: the default stays "legacy": on the full zoo (benchmarks/scene_zoo.py --family all, 2026-11-29) "adaptive" is
 #: honest on every pair (S-all, A-all 34/34, cover 68/68) in ~1/4 of legacy's time but within 10 % on 29/34 pairs
-#: against legacy's 31/34, two short of issue 15's 90 % line (docs/model-error.md, "The full zoo on main with the gate")
+#: against legacy's 31/34, two short of issue 15's 90 % line (docs/model-error.md, "The full zoo on main with the
+#: gate"); "hybrid" gives legacy's rows where adaptive's sigma_s' is not ok and adaptive's where it is (z10: 3.37x
+#: the anchor): 31/34 predicted, every pair run identical to that prediction (docs/model-error.md, "hybrid")
 DEFAULT_REFERENCE_MODE = "legacy"
 
 
@@ -507,8 +509,9 @@ def _reference_lines(result: dict[str, Any]) -> list[str]:
     fb = ref.get("hybrid_fallback")
     if fb:
         lines.append(f"  reference mode hybrid: the adaptive loop ({fb['adaptive_render_spp']} spp, "
-                     f"{fb['adaptive_seconds_total'] or 0.0:.1f} s; sigma_s' {_cells(fb['adaptive_sigma_s_prime_per_mm'])}"
-                     f" 1/mm) was not ok ({fb['why']}): the legacy loop's estimate above")
+                     f"{fb['adaptive_seconds_total'] or 0.0:.1f} s; sigma_s' "
+                     f"{_cells(fb['adaptive_sigma_s_prime_per_mm'])} 1/mm) was not ok ({fb['why']}): the legacy "
+                     "loop's estimate above")
     for n in ref.get("notes", []):
         lines.append(f"  reference: {n}")
     return lines
