@@ -356,7 +356,7 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
         valid_px = np.all(valid, axis=2)
         levels = tuple(sorted({min(spp, max(REFERENCE_MIN_SPP, spp // k)) for k in REFERENCE_SPP_LEVEL_DIVISORS}))
 
-        def run_reference(adaptive: bool) -> tuple[Any, dict[str, Any]]:
+        def run_reference(adaptive: bool, line_search: bool = True) -> tuple[Any, dict[str, Any]]:
             ref, ref_info = scene_reference(scene, patches, valid_px, spp=spp,   # SceneFileError before any fit
                                             spp_levels=levels if adaptive and len(levels) > 1 else ())
             # the start's scan along the ridge of constant albedo (estimation.ridge_scan): cheap renders,
@@ -371,7 +371,7 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
             try:
                 r = estimate_with_reference(obs, patches, e_t, scene.material.eta, ref, base_model="mc-table",
                                             max_iterations=iterations, seed=ref_seed, scan_reference=scan_ref,
-                                            refine_reference=refine_ref, **fit_kw)
+                                            refine_reference=refine_ref if line_search else None, **fit_kw)
             except ValueError as exc:  # e.g. the reference has no value at any observed patch
                 r = SingleImageResult(False, f"Monte Carlo reference: {exc}", meth, model_name, scene.material.eta)
             info = {**ref_info, "base_model": "mc-table", "max_iterations": iterations, "seed": ref_seed,
@@ -388,7 +388,10 @@ def estimate_scene(scene: Scene, *, method: str | None = None, model: str | None
                     "seconds_total": r.extra.get("seconds_total")}
             return r, info
 
-        res, reference_out = run_reference(mode != "legacy")
+        # hybrid: the adaptive pass without the ridge line search, which runs only where no channel converged, and
+        # such an estimate stays weak: the fallback follows either way (the same decision and result, its renders
+        # saved); with one level only the pass is the legacy loop and keeps it
+        res, reference_out = run_reference(mode != "legacy", line_search=mode != "hybrid" or len(levels) < 2)
         if mode == "hybrid":
             # the adaptive loop's estimate stands where every channel's sigma_s' is "ok" (or where it had one level
             # only: it was the legacy loop); else the legacy loop's from the start (the same renders and estimate as
