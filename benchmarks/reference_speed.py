@@ -184,6 +184,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--trees", default="anchor,current", help="which trees to time (default both)")
     ap.add_argument("--anchor", default=ANCHOR_COMMIT, help=f"anchor commit (default {ANCHOR_COMMIT})")
     ap.add_argument("--json", type=Path)
+    ap.add_argument("--reference-mode", choices=("adaptive", "hybrid", "legacy"), default=SCENE_OPTS["reference_mode"],
+                    help="the current tree's single-image reference mode (default %(default)s; hybrid: adaptive, "
+                         "legacy where sigma_s' is not ok)")
     args = ap.parse_args(argv)
     trees = {"anchor": None, "current": ROOT}
     names = [t for t in args.trees.split(",") if t]
@@ -195,7 +198,8 @@ def main(argv: list[str] | None = None) -> int:
     items = []
     if not args.skip_scene:
         folder, spec = scene_item()
-        items.append(("scene", folder, spec, SCENE_OPTS, scene_row, f"z{SCENE_INDEX:02d} {spec.name}"))
+        items.append(("scene", folder, spec, {**SCENE_OPTS, "reference_mode": args.reference_mode}, scene_row,
+                      f"z{SCENE_INDEX:02d} {spec.name}"))
     if not args.skip_sphere:
         folder, case = sphere_item()
         items.append(("sphere", folder, case, SPHERE_OPTS, sphere_row, case.name))

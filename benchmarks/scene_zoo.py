@@ -155,7 +155,7 @@ def run_model(scene: Any, model: str, spec: SceneSpec, ref_spp: int, ref_iterati
            "renders": len(ref.get("renders") or []), "scan_renders": len(ref.get("scan_renders") or []),
            "ridge_scan": ref.get("ridge_scan"), "ridge_line_search": ref.get("ridge_line_search"),
            "status": res.get("status"), "render_spp": [r.get("spp") for r in ref.get("renders") or []],
-           "sample_count_levels": ref.get("sample_count_levels"),
+           "sample_count_levels": ref.get("sample_count_levels"), "hybrid_fallback": ref.get("hybrid_fallback"),
            "rows": evaluate(res, model, list(spec.sigma_s_prime_per_mm), list(spec.sigma_a_per_mm))}
     if ref:
         steps, cum = [], 0.0
@@ -317,7 +317,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--reference-spp", type=int, help="mc-table+reference render spp (default 128, --quick 32)")
     ap.add_argument("--reference-iterations", type=int, help="at most this many reference renders (default 6, "
                     "--quick 4)")
-    ap.add_argument("--reference-mode", choices=["adaptive", "legacy"],
+    ap.add_argument("--reference-mode", choices=["adaptive", "hybrid", "legacy"],
                     help="mc-table+reference sample counts (rig estimate single-image --reference-mode; default: its "
                          "default)")
     ap.add_argument("--scenes", help="comma-separated scene indices (default: all of the zoo or the subset)")

@@ -491,10 +491,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="mc-table+reference: at most K reference renders (default: the scene file's, else 4)")
     q.add_argument("--reference-seed", type=_int_at_least(0), default=None, metavar="S",
                    help="mc-table+reference: seed of every reference render (default: the scene file's, else 1)")
-    q.add_argument("--reference-mode", choices=("legacy", "adaptive"), default=None,
-                   help="mc-table+reference: 'legacy' (default: every render at --reference-spp) or 'adaptive' "
-                        "(a first render at spp/8, then the sample count whose noise is at most half the fit's; "
-                        "docs/model-error.md)")
+    q.add_argument("--reference-mode", choices=("legacy", "adaptive", "hybrid"), default=None,
+                   help="mc-table+reference: 'legacy' (default: every render at --reference-spp), 'adaptive' "
+                        "(a first render at spp/8, then the sample count whose noise is at most half the fit's) or "
+                        "'hybrid' (adaptive; where sigma_s' is not ok, legacy from the start; docs/model-error.md)")
     q.add_argument("--shadows", choices=["auto", "on", "off"], default=None,
                    help="cast shadows of the lights on the mesh (default: the scene file's [estimation].shadows, "
                         "else auto = on for non-convex meshes; docs/visibility.md)")

@@ -260,3 +260,50 @@ def test_mc_reference_pixel_rays_of_a_distorted_camera(tmp_path):
     v, u = np.mgrid[0:40, 0:40].astype(np.float64)
     np.testing.assert_allclose(uv, np.stack([u, v], axis=-1), atol=1e-4)
     assert np.max(np.abs(dirs - cam.pixel_rays()[1])) > 1e-3  # and the distortion does move the rays
+
+
+def test_hybrid_reference_mode_falls_back_to_legacy_where_sigma_s_prime_is_not_ok(tmp_path, monkeypatch):
+    """reference_mode "hybrid" (issue 19 line 2): the adaptive loop's estimate where every channel's sigma_s' is
+    "ok", else the legacy loop from the start, whose estimate is then exactly --reference-mode legacy's; the
+    adaptive run is recorded in reference["hybrid_fallback"]. The adaptive run's status is forced through a wrapper
+    of estimate_with_reference, which also drops the ridge scan and line search (cheap: a 32 px, 32-spp frame;
+    32-spp references, levels 8/16/32, one render counted)."""
+    import estimation.model_correction as mc
+    from simulators.mc import Medium, Mesh, render
+    from estimation.single_image import PointLights
+
+    from rig.estimate.scenes import estimate_scene
+
+    cam = _mc_camera(32)
+    _pyramid().export(tmp_path / "pyramid.ply")
+    img = render(Mesh(_pyramid()), [Medium.from_reduced(*MC_TRUTH, eta=MC_ETA)], cam,
+                 PointLights(np.array([MC_LIGHT_MM]), np.array([[1.0e6]])), spp=32, seed=1)
+    write_exr(tmp_path / "img.exr", img.radiance.astype(np.float32))
+    scene = load_scene(write_scene(tmp_path, _mc_scene_doc(cam, material={"model": "mc-table+reference"}, estimation={
+        "reference_spp": 32, "reference_iterations": 1, "reference_seed": 3})))
+    real, calls = mc.estimate_with_reference, []
+
+    def spy(*args, **kw):
+        r = real(*args, **{**kw, "refine_reference": None, "scan_reference": None})  # no line search: cheap
+        adaptive = bool(args[4].spp_levels)
+        calls.append(adaptive)
+        if adaptive:
+            r.extra["status"] = {**r.extra["status"], "sigma_s_prime_per_mm": [forced]}
+        return r
+
+    monkeypatch.setattr(mc, "estimate_with_reference", spy)
+    legacy = estimate_scene(scene, reference_mode="legacy")
+    assert calls == [False] and legacy["reference"]["spp_levels"] == [32]
+    forced = "weak"
+    calls.clear()
+    hybrid = estimate_scene(scene, reference_mode="hybrid")
+    assert calls == [True, False], calls
+    fb = hybrid["reference"]["hybrid_fallback"]
+    assert fb and "weak" in fb["why"] and fb["adaptive_render_spp"] and fb["adaptive_render_spp"][0] == 8, fb
+    assert hybrid["parameters"] == legacy["parameters"] and hybrid["status"] == legacy["status"]
+    assert [r["spp"] for r in hybrid["reference"]["renders"]] == [r["spp"] for r in legacy["reference"]["renders"]]
+    forced = "ok"
+    calls.clear()
+    adaptive_ok = estimate_scene(scene, reference_mode="hybrid")
+    assert calls == [True] and adaptive_ok["reference"]["hybrid_fallback"] is None
+    assert adaptive_ok["reference"]["reference_mode"] == "hybrid" and len(adaptive_ok["reference"]["spp_levels"]) > 1
