@@ -99,7 +99,7 @@ ITEM_RESOURCE = "item"
 #: automatic render chunks (``render_chunk_rows=None``): chunks per render per item slot of the cluster, at most
 #: AUTO_MAX_CHUNKS (on a big cluster every running item's renders would otherwise be split into thousands of tasks:
 #: each chunk task carries the scene and pays Dask's ~4-30 ms), each of at least AUTO_MIN_CHUNK_ROWS rows
-AUTO_CHUNKS_PER_SLOT, AUTO_MAX_CHUNKS, AUTO_MIN_CHUNK_ROWS = 2, 8, 8
+AUTO_CHUNKS_PER_SLOT, AUTO_MAX_CHUNKS, AUTO_MIN_CHUNK_ROWS = 1, 8, 8
 #: threads hashing the items' inputs on the calling machine (SHA-256 ran at ~450 MB/s per core here)
 HASH_THREADS = 8
 
