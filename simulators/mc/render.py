@@ -175,7 +175,7 @@ def _trace_path(kind, prm, nbox, nidx, tris, eps_t, nudge, convex, stack, inside
     return value, v_ds, v_da, state, n_coll, truncated
 
 
-@njit(parallel=True, cache=True, error_model="numpy")
+@njit(parallel=True, nogil=True, cache=True, error_model="numpy")
 def _render_kernel(origins, dirs, spp, seed, channel, pixel_ids, kind, prm, nbox, nidx, tris, eps_t, nudge, convex,
                    sigma_t, albedo, g, eta, rr_weight, rr_survival, max_collisions,
                    light_pos, light_int, light_cdf, sample_one, n_scan, nee_tau,
