@@ -92,8 +92,8 @@ _HASH_CHUNK = 1 << 20
 #: item run before further items start (an item waiting on its chunks has left its worker slot)
 CHUNK_PRIORITY = 1 << 30
 #: Dask worker resource held by each running item (:func:`local_cluster` gives every worker one per thread): an item
-#: waiting on its render chunks secedes from its thread slot (``worker_client``) but keeps its resources until it
-#: ends (distributed's worker state machine releases them only when the task finishes, the scheduler alike), so the
+#: waiting on its render chunks secedes from its thread slot (:func:`_leave_worker_slot`) but keeps its resources until
+#: it ends (distributed's worker state machine releases them only when the task finishes, the scheduler alike), so the
 #: freed slot runs chunks, never a second item: a one-thread worker stays one core. Render chunks carry none.
 ITEM_RESOURCE = "item"
 #: automatic render chunks (``render_chunk_rows=None``): chunks per render per item slot of the cluster, at most
@@ -449,8 +449,8 @@ def chunk_row_sets(height_px: int, chunk_rows: int = 0, chunks: int = 0) -> list
 def chunked_render(shape: Any, media: Any, camera: Any, lights: Any, *, chunk_rows: int = 0, chunks: int = 0,
                    **kw: Any) -> Any:
     """:func:`simulators.mc.render` split into interleaved row chunks (:func:`chunk_row_sets`: ``chunk_rows`` rows
-    each, or ``chunks`` chunks), each a task on the Dask cluster this task runs on (``distributed.worker_client``:
-    the calling task leaves its worker slot while it waits), put back in place. Every pixel keeps its random stream
+    each, or ``chunks`` chunks), each a task on the Dask cluster this task runs on (the calling task leaves its worker
+    slot, :func:`_leave_worker_slot`), put back in place. Every pixel keeps its random stream
     (render's ``rows``), so the image is bit-identical to the whole render for any chunking and any number of
     workers. Outside a Dask worker: the chunks one after another."""
     from simulators.mc import render
