@@ -492,9 +492,9 @@ def build_parser() -> argparse.ArgumentParser:
     q.add_argument("--reference-seed", type=_int_at_least(0), default=None, metavar="S",
                    help="mc-table+reference: seed of every reference render (default: the scene file's, else 1)")
     q.add_argument("--reference-mode", choices=("legacy", "adaptive", "hybrid"), default=None,
-                   help="mc-table+reference: 'legacy' (default: every render at --reference-spp), 'adaptive' "
-                        "(a first render at spp/8, then the sample count whose noise is at most half the fit's) or "
-                        "'hybrid' (adaptive; where sigma_s' is not ok, legacy from the start; docs/model-error.md)")
+                   help="mc-table+reference: 'hybrid' (default: adaptive; where sigma_s' is not ok, legacy from "
+                        "the start; docs/model-error.md), 'adaptive' (a first render at spp/8, then the sample count "
+                        "whose noise is at most half the fit's) or 'legacy' (every render at --reference-spp)")
     q.add_argument("--shadows", choices=["auto", "on", "off"], default=None,
                    help="cast shadows of the lights on the mesh (default: the scene file's [estimation].shadows, "
                         "else auto = on for non-convex meshes; docs/visibility.md)")

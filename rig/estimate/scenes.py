@@ -50,12 +50,12 @@ REFERENCE_MODES = ("adaptive", "hybrid", "legacy")
 #: one of REFINE_SPP_FACTORS (the smallest whose noise is at most half the plain fit's standard errors, else the
 #: largest), score-function derivatives only (the sigma_a refit): the zoo's sky-lit boxes z02 / z11
 REFINE_SPP_FACTORS = (2, 4, 8)
-#: the default stays "legacy": on the full zoo (benchmarks/scene_zoo.py --family all, 2026-11-29) "adaptive" is
+#: the default is "hybrid" (2026-11-29): on the full zoo (benchmarks/scene_zoo.py --family all) "adaptive" alone is
 #: honest on every pair (S-all, A-all 34/34, cover 68/68) in ~1/4 of legacy's time but within 10 % on 29/34 pairs
-#: against legacy's 31/34, two short of issue 15's 90 % line (docs/model-error.md, "The full zoo on main with the
-#: gate"); "hybrid" gives legacy's rows where adaptive's sigma_s' is not ok and adaptive's where it is (z10: 3.37x
-#: the anchor): 31/34 predicted, every pair run identical to that prediction (docs/model-error.md, "hybrid")
-DEFAULT_REFERENCE_MODE = "legacy"
+#: against legacy's 31/34 (issue 15's 90 % line); "hybrid" keeps adaptive's rows where its sigma_s' is ok (z10: 3.37x
+#: the issue-19 anchor) and legacy's elsewhere: 31/34, every honesty rule 34/34 / 68/68, all 28 scenes run in hybrid
+#: mode, each row identical to the adaptive or the legacy run (docs/model-error.md, "hybrid")
+DEFAULT_REFERENCE_MODE = "hybrid"
 
 
 def _irradiance(scene: Scene, patches: Any) -> Array:
