@@ -548,14 +548,16 @@ def run_item(item: BatchItem, options: dict[str, Any], out_dir: str | os.PathLik
 def local_cluster(workers: int, **kw: Any) -> Any:
     """A :class:`distributed.LocalCluster` of ``workers`` processes, one thread each, :data:`WORKER_ENV` set in
     every worker (restarted workers too: the nanny spawns them with it), one :data:`ITEM_RESOURCE` per worker (one
-    item at a time, its render chunks beside it), no dashboard unless asked."""
+    item at a time, its render chunks beside it), the scheduler's HTTP server (dashboard) on a free port unless
+    ``dashboard_address`` is given: distributed starts it even for ``dashboard_address=None``, on the default port
+    8787, and a second cluster on the machine (a batch beside another) then warned "Port 8787 is already in use"."""
     from distributed import LocalCluster
 
     if workers < 1:
         raise ValueError(f"workers must be >= 1 for a LocalCluster; got {workers}")
     import dask
 
-    kw.setdefault("dashboard_address", None)
+    kw.setdefault("dashboard_address", ":0")
     with dask.config.set(NANNY_CONFIG):  # read by each Nanny when it is made (here), kept for its restarts
         return LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
                             env={**WORKER_ENV, **kw.pop("env", {})}, silence_logs=kw.pop("silence_logs", 40),

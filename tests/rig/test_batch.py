@@ -14,7 +14,6 @@ import signal
 import sys
 import threading
 import time
-import warnings
 from pathlib import Path
 from typing import Any
 
@@ -152,10 +151,9 @@ def test_item_resource_keeps_one_item_per_worker_thread(resources: dict[str, int
 
     from rig.estimate.batch import as_completed_in_slots
 
-    with warnings.catch_warnings():     # the module's 2-worker cluster holds the scheduler's default HTTP port
-        warnings.filterwarnings("ignore", "Port .* is already in use", UserWarning)
-        cluster = LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None,
-                               resources=resources)
+    # the HTTP server on a free port: the module's 2-worker cluster holds the default one (8787)
+    cluster = LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0",
+                           resources=resources)
     with cluster, Client(cluster) as c:
         restrict = item_restrictions(c)
         assert restrict == ({"resources": {"item": 1}} if resources else {})
