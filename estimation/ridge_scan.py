@@ -38,7 +38,7 @@ from .single_image import SingleImageResult
 
 __all__ = ["MAX_DELTA_LOG_SA", "RIDGE_CORRELATION", "EDGE_FACTOR", "SCAN_RATIO", "SCAN_STEPS", "SCAN_EXTEND",
            "LINE_STEP_LOG", "LINE_EXTEND", "LINE_SIGNIFICANCE", "LINE_CHECK_SEED_OFFSETS", "line_gain_threshold",
-           "profile_chi2", "profile_objective", "objective_gradient", "paired_gain_sd", "ridge_channels", "scan_ridge", "on_the_ridge",
+           "line_prefetcher", "profile_chi2", "profile_objective", "objective_gradient", "paired_gain_sd", "ridge_channels", "scan_ridge", "on_the_ridge",
            "ridge_line_search"]
 
 Array = NDArray[np.float64]
@@ -78,15 +78,32 @@ LINE_CHECK_SEED_OFFSETS: tuple[int, ...] = (7919, 15838, 23757)
 LINE_SIGNIFICANCE: float = 0.05
 
 
-def _render_points(render: Callable[[Array], tuple[Array, Array, Array | None, float]], base: Array,
-                   todo: list[int | None], point: Callable[[int, int], Array | None]
-                   ) -> tuple[Array, Array, Array | None, float]:
-    """One render with channel c at ``point(c, k)`` where ``todo[c]`` = k is set, at ``base[c]`` (C, 2) elsewhere."""
+def _points_theta(base: Array, todo: list[int | None], point: Callable[[int, int], Array | None]) -> Array:
+    """(C, 2): channel c at ``point(c, k)`` where ``todo[c]`` = k is set, at ``base[c]`` elsewhere."""
     th = base.copy()
     for c, k in enumerate(todo):
         if k is not None:
             th[c] = point(c, k)
-    return render(th)
+    return th
+
+
+def _render_points(render: Callable[[Array], tuple[Array, Array, Array | None, float]], base: Array,
+                   todo: list[int | None], point: Callable[[int, int], Array | None]
+                   ) -> tuple[Array, Array, Array | None, float]:
+    """One render at :func:`_points_theta`."""
+    return render(_points_theta(base, todo, point))
+
+
+def line_prefetcher(reference: Any, eta: float, seed: int) -> Callable[[list[tuple[Array, int]]], None] | None:
+    """:func:`ridge_line_search`'s ``prefetch`` for a reference renderer (called as ``reference(sigma_s', sigma_a,
+    eta, seed)``) that has a ``prefetch`` method taking such calls (rig's Monte Carlo references: renders at once on
+    a cluster); else None. r -> the seed of its render: ``seed``, or ``seed`` + LINE_CHECK_SEED_OFFSETS[r]."""
+    fetch = getattr(reference, "prefetch", None)
+    if fetch is None:
+        return None
+    return lambda pts: fetch([(np.exp(th[:, 0]), np.exp(th[:, 1]), eta, seed + (0 if r < 0 else
+                                                                                 LINE_CHECK_SEED_OFFSETS[r]))
+                              for th, r in pts])
 
 
 def profile_chi2(r: Array, d: Array, w: Array, max_delta: float = MAX_DELTA_LOG_SA) -> tuple[float, float, float]:
@@ -176,7 +193,8 @@ def line_gain_threshold(n_compared: int, level: float = LINE_SIGNIFICANCE) -> fl
 def ridge_line_search(render: Callable[[Array], tuple[Array, Array, Array | None, float]], obs: Array,
                       metric: Callable[[Array, Array], Array], theta: Array, channels: NDArray[np.bool_],
                       step_log: float = LINE_STEP_LOG, extend: int = LINE_EXTEND,
-                      render_check: Sequence[Callable[[Array], tuple[Array, Array, Array | None, float]]] = ()
+                      render_check: Sequence[Callable[[Array], tuple[Array, Array, Array | None, float]]] = (),
+                      prefetch: Callable[[list[tuple[Array, int]]], None] | None = None
                       ) -> tuple[Array, dict[str, Any]]:
     """The profile objective along the ridge of constant albedo through ``theta`` (C, 2), minimised on renders.
 
@@ -203,7 +221,10 @@ def ridge_line_search(render: Callable[[Array], tuple[Array, Array, Array | None
       times sqrt(sd_0^2 + sd_b^2) (:func:`profile_objective`'s delta method; a bound for the renders' shared seed,
       whose positive correlation makes the true spread smaller: measured on z11 2-3x).
 
-    Else it keeps ``theta``. Returns the new point (``theta`` where ``channels`` is False or the gate says no) and a
+    Else it keeps ``theta``. ``prefetch`` (optional) is told, before each group of renders that do not depend on
+    one another (the three first points; all the check renders), what they are: a list of (theta (C, 2), r), r = -1
+    for ``render``, i for ``render_check[i]``, in the order they are then asked for; a renderer may render them at
+    once (rig.estimate.batch: in parallel on a Dask cluster). Returns the new point (``theta`` where ``channels`` is False or the gate says no) and a
     record (per channel ``gain``, ``gain_check``, ``gain_sd``, ``gain_threshold_sd``, ``moved``).
     """
     n_ch = theta.shape[0]
@@ -226,8 +247,11 @@ def ridge_line_search(render: Callable[[Array], tuple[Array, Array, Array | None
                 rec[c][k] = profile_objective(q, se, dq, obs, m, c)
                 kept[c][k] = (q, dq)
 
-    for k in (0, -1, 1):
-        run([k if channels[c] else None for c in range(n_ch)])
+    first = [[k if channels[c] else None for c in range(n_ch)] for k in (0, -1, 1)]
+    if prefetch is not None:
+        prefetch([(_points_theta(theta, todo, pt), -1) for todo in first])
+    for todo in first:
+        run(todo)
     for _ in range(extend):
         todo: list[int | None] = [None] * n_ch
         for c in range(n_ch):
@@ -256,9 +280,12 @@ def ridge_line_search(render: Callable[[Array], tuple[Array, Array, Array | None
     if render_check and any(b is not None for b in bests):  # the candidates tested on other seeds
         gains: list[list[float]] = [[] for _ in range(n_ch)]
         variances: list[list[float]] = [[] for _ in range(n_ch)]
+        pair = ([0 if b is not None else None for b in bests], bests)
+        if prefetch is not None:
+            prefetch([(_points_theta(theta, todo, pt), i) for i in range(len(render_check)) for todo in pair])
         for render_other in render_check:
             checked = []
-            for todo in ([0 if b is not None else None for b in bests], bests):
+            for todo in pair:
                 q, se, dq, sec = _render_points(render_other, theta, todo, pt)
                 check_seconds.append(sec)
                 checked.append((q, se, dq))

@@ -100,6 +100,13 @@ ITEM_RESOURCE = "item"
 #: AUTO_MAX_CHUNKS (on a big cluster every running item's renders would otherwise be split into thousands of tasks:
 #: each chunk task carries the scene and pays Dask's ~4-30 ms), each of at least AUTO_MIN_CHUNK_ROWS rows
 AUTO_CHUNKS_PER_SLOT, AUTO_MAX_CHUNKS, AUTO_MIN_CHUNK_ROWS = 1, 8, 8
+#: automatic chunks: a render expected to take less than AUTO_MIN_CHUNKED_RENDER_S runs whole in its item's task
+#: (:class:`AutoChunks`), expected = its pixel-samples x the item's last render's seconds per pixel-sample (before the
+#: first: AUTO_FIRST_S_PER_SAMPLE, a fast walk's, so only a big first render is split). Measured on the batch
+#: benchmark's zoo scenes: the short items' renders take 0.05-0.13 s (2 us per pixel-sample), their chunks then cost
+#: more in round trips and in waiting for a chunk behind another item's fit than they save; the long item's 64-spp
+#: renders take 2.3-3.0 s (6 us per pixel-sample)
+AUTO_MIN_CHUNKED_RENDER_S, AUTO_FIRST_S_PER_SAMPLE = 0.5, 1e-6
 #: threads hashing the items' inputs on the calling machine (SHA-256 ran at ~450 MB/s per core here)
 HASH_THREADS = 8
 
@@ -453,22 +460,68 @@ def chunked_render(shape: Any, media: Any, camera: Any, lights: Any, *, chunk_ro
     slot, :func:`_leave_worker_slot`), put back in place. Every pixel keeps its random stream
     (render's ``rows``), so the image is bit-identical to the whole render for any chunking and any number of
     workers. Outside a Dask worker: the chunks one after another."""
+    return _renders_in_chunks([(shape, media, camera, lights, kw)], chunk_rows, chunks)[0]
+
+
+def _renders_in_chunks(calls: Sequence[tuple[Any, Any, Any, Any, dict[str, Any]]], chunk_rows: int = 0,
+                       chunks: int = 0) -> list[Any]:
+    """The images of several renders ``(shape, media, camera, lights, kw)``, each in row chunks (:func:`chunked_render`),
+    every chunk of every render submitted at once (on a Dask worker), then gathered."""
     from simulators.mc import render
 
-    bounds = chunk_row_sets(int(camera.height_px), chunk_rows, chunks)
-    if len(bounds) == 1:
-        return render(shape, media, camera, lights, **kw)
+    bounds = [chunk_row_sets(int(c[2].height_px), chunk_rows, chunks) for c in calls]
+    if all(len(b) == 1 for b in bounds):
+        return [render(*c[:4], **c[4]) for c in calls]
     try:
         from distributed import get_client, get_worker
         get_worker()
     except (ImportError, ValueError):
-        return _stack_chunks([render(shape, media, camera, lights, rows=b, **kw) for b in bounds])
+        return [_stack_chunks([render(*c[:4], rows=r, **c[4]) for r in b]) for c, b in zip(calls, bounds)]
     client = get_client()
     _leave_worker_slot()
     # above every item's priority (run_batch gives items 1..N): a started item's chunks run before new items start
-    futures = [client.submit(render, shape, media, camera, lights, rows=b, pure=False, priority=CHUNK_PRIORITY,
-                             **kw) for b in bounds]
-    return _stack_chunks(client.gather(futures))
+    futures = [[client.submit(render, *c[:4], rows=r, pure=False, priority=CHUNK_PRIORITY, **c[4]) for r in b]
+               for c, b in zip(calls, bounds)]
+    return [_stack_chunks(parts) for parts in client.gather(futures)]
+
+
+class AutoChunks:
+    """The automatic render chunks of one item (:func:`run_item`): each render as ``chunks`` chunks
+    (:func:`chunked_render`) when it is expected to take at least :data:`AUTO_MIN_CHUNKED_RENDER_S`, else whole in the
+    item's own task; expected from the item's last render (its seconds per pixel-sample x this render's pixel-samples:
+    height x width x spp x media). Which renders are split changes when they run, never their numbers (a render is
+    bit-identical whole or in chunks)."""
+
+    def __init__(self, chunks: int) -> None:
+        self.chunks = int(chunks)
+        self.s_per_sample = AUTO_FIRST_S_PER_SAMPLE
+
+    @staticmethod
+    def _samples(media: Any, camera: Any, kw: dict[str, Any]) -> float:
+        n_media = len(media) if isinstance(media, (list, tuple)) else 1
+        return float(camera.height_px) * float(camera.width_px) * float(kw.get("spp", 1)) * n_media
+
+    def __call__(self, shape: Any, media: Any, camera: Any, lights: Any, **kw: Any) -> Any:
+        from simulators.mc import render
+
+        samples = self._samples(media, camera, kw)
+        if self.chunks >= 2 and self.s_per_sample * samples >= AUTO_MIN_CHUNKED_RENDER_S:
+            img = chunked_render(shape, media, camera, lights, chunks=self.chunks, **kw)
+        else:
+            img = render(shape, media, camera, lights, **kw)
+        self.s_per_sample = float(img.seconds) / max(samples, 1.0)
+        return img
+
+    def many(self, calls: Sequence[tuple[Any, Any, Any, Any, dict[str, Any]]]) -> list[Any]:
+        """The images of independent renders ``(shape, media, camera, lights, kw)`` (a reference's ``prefetch``):
+        every chunk of every one submitted at once (one wave: the workers stay busy to the wave's end, not to each
+        render's end), the same images as one by one."""
+        if self.chunks < 2:
+            return [self(*c[:4], **c[4]) for c in calls]
+        imgs = _renders_in_chunks(calls, chunks=self.chunks)
+        self.s_per_sample = float(imgs[-1].seconds) / max(1.0, self._samples(calls[-1][1], calls[-1][2],
+                                                                              calls[-1][4]))
+        return imgs
 
 
 _SECEDED = threading.local()
@@ -527,8 +580,9 @@ def run_item(item: BatchItem, options: dict[str, Any], out_dir: str | os.PathLik
     if folder.exists():     # a killed earlier attempt or an item whose inputs changed: start clean
         shutil.rmtree(folder)
     folder.mkdir(parents=True)
-    chunked = chunk_rows > 0 or chunks > 0
-    with render_with(partial(chunked_render, chunk_rows=chunk_rows, chunks=chunks) if chunked else None):
+    hook = (partial(chunked_render, chunk_rows=chunk_rows) if chunk_rows > 0 else AutoChunks(chunks) if chunks > 0
+            else None)
+    with render_with(hook):
         result, files = _estimate(item, options, folder)
     write_json(folder / RESULT_FILE, result)
     record = {"format": MARKER_FORMAT, "format_version": 1, "key": item.key, "kind": item.kind,

@@ -7,6 +7,8 @@ point nearest the truth, with sigma_a refitted towards it; channels it is not as
 """
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -212,3 +214,33 @@ def test_the_paired_gate_tests_the_choice_on_another_seed(off: float, rel_se: fl
         assert abs(np.exp(out[0, 0] - TRUTH[0, 0]) - 1.0) < 0.1
     else:
         np.testing.assert_array_equal(out, start)
+
+
+def test_the_line_search_announces_its_independent_renders_before_asking_for_them() -> None:
+    """``prefetch`` is told, in order, the three first points (r = -1: ``render``) and then every check render (r =
+    the check's index) before they are asked for: a renderer may render each group at once (rig.estimate.batch); the
+    search's result is the same with or without it."""
+    obs, _, _, _ = _render(TRUTH)
+    start = TRUTH + np.log(1.25)
+    asked: list[tuple[int, bytes]] = []
+    told: list[list[tuple[int, bytes]]] = []
+
+    def recording(r: int, fn: Any) -> Any:
+        def render(th: np.ndarray) -> Any:
+            asked.append((r, th.tobytes()))
+            return fn(th)
+        return render
+
+    def run(prefetch: Any) -> tuple[np.ndarray, dict[str, Any]]:
+        return ridge_line_search(recording(-1, _noisy(0.02, 6)), obs, _metric, start, np.array([True, False]),
+                                 render_check=[recording(0, _noisy(0.02, 99)), recording(1, _noisy(0.02, 100))],
+                                 prefetch=prefetch)
+
+    out, info = run(lambda pts: told.append([(r, th.tobytes()) for th, r in pts]))
+    assert info["moved"] == [True, False] and len(told) == 2
+    assert told[0] == asked[:3] and all(r == -1 for r, _ in told[0])
+    assert told[1] == asked[-4:] and [r for r, _ in told[1]] == [0, 0, 1, 1]
+    asked.clear()
+    out_plain, info_plain = run(None)
+    np.testing.assert_array_equal(out, out_plain)
+    assert info["grid"] == info_plain["grid"]

@@ -100,6 +100,53 @@ def test_chunked_render_is_bit_identical_to_whole_render() -> None:
             render(*scene, rows=bad, **kw)
 
 
+def _small_scene() -> tuple[tuple[Any, ...], dict[str, Any]]:
+    """A 12 x 16 px sphere (16 rows: two automatic chunks of >= AUTO_MIN_CHUNK_ROWS) and its render keywords."""
+    import numpy as np
+
+    from estimation.camera import PinholeCamera
+    from estimation.single_image import PointLights
+    from simulators.mc import Medium, Sphere
+
+    cam = PinholeCamera(12, 16, 20.0, 20.0, 6.0, 8.0, ((1, 0, 0), (0, 0, -1), (0, 1, 0)), (0.0, -100.0, 0.0))
+    scene = (Sphere((0.0, 0.0, 0.0), 10.0), [Medium.from_reduced(1.0, 0.01, eta=1.3)] * 2, cam,
+             PointLights(np.array([[0.0, -200.0, 100.0]]), np.array([1.0])))
+    return scene, dict(spp=4, seed=3, derivatives=True, fd_log_sigma_s=0.1)
+
+
+def _auto_chunks_on_a_worker(s_per_sample: float, wave: bool) -> list[Any]:
+    """One render, or a wave of two (``many``), through AutoChunks(2) starting from ``s_per_sample``, as a task on a
+    worker."""
+    from rig.estimate.batch import AutoChunks
+
+    scene, kw = _small_scene()
+    auto = AutoChunks(2)
+    auto.s_per_sample = s_per_sample
+    return auto.many([(*scene, kw), (*scene, {**kw, "seed": 4})]) if wave else [auto(*scene, **kw)]
+
+
+def test_auto_chunks_split_only_long_renders_and_a_wave_at_once(client: Any) -> None:
+    """AutoChunks (the batch's automatic chunks): a render expected below AUTO_MIN_CHUNKED_RENDER_S runs whole in
+    the item's task (no chunk task), a longer one in 2 chunks; a wave (``many``, a reference's prefetch) in 2
+    chunks per render whatever its expected time; every image bit-identical to the whole render."""
+    import numpy as np
+    from distributed import get_task_stream
+
+    from simulators.mc import render
+
+    scene, kw = _small_scene()
+    want = {False: [render(*scene, **kw)], True: [render(*scene, **kw), render(*scene, **{**kw, "seed": 4})]}
+    for s_per_sample, wave, n_chunks in ((1e-9, False, 0), (1.0, False, 2), (1e-9, True, 4)):
+        with get_task_stream(client) as ts:
+            imgs = client.submit(_auto_chunks_on_a_worker, s_per_sample, wave, pure=False).result()
+        assert sum(str(t["key"]).startswith("render-") for t in ts.data) == n_chunks, (s_per_sample, wave)
+        if n_chunks:    # on both workers (a wave: all four queued at once)
+            assert len({t["worker"] for t in ts.data if str(t["key"]).startswith("render-")}) == 2
+        for img, w in zip(imgs, want[wave], strict=True):
+            for name in ("radiance", "stderr", "mask", "d_log_sigma", "d_log_sigma_stderr"):
+                assert np.array_equal(getattr(img, name), getattr(w, name)), (s_per_sample, wave, name)
+
+
 def test_two_workers_bit_identical_to_serial(scenes: list[Path], serial: Any, client: Any,
                                              tmp_path: Path) -> None:
     """Each item a task, and each of its reference renders split into 16-row chunks across the two workers."""

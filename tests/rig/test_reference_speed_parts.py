@@ -83,3 +83,47 @@ def test_pixel_subset_camera_renders_its_pixels_bit_identically_and_skips_the_re
     assert PixelSubsetCamera(cam, mask).fx_px == cam.fx_px          # the rest is the wrapped camera's
     with pytest.raises(ValueError, match="mask must be"):
         PixelSubsetCamera(cam, np.ones((9, 10), bool))
+
+
+def test_reference_prefetch_renders_ahead_once_and_changes_no_number() -> None:
+    """MonteCarloReference.prefetch (the ridge line search's independent renders, rig.estimate.batch's waves): with a
+    render function that has ``many``, the announced calls are rendered there at once and each later call with the
+    same arguments takes its image (no second render), returning exactly what the call alone returns; a call it did
+    not announce (another seed) renders as usual; without ``many`` prefetch renders nothing."""
+    from estimation.single_image import Patches
+    from simulators.mc import Sphere, render, uniform_environment
+
+    from rig.estimate.reference.mc_reference import MonteCarloReference, render_with
+
+    cam = PinholeCamera.looking_at(width_px=10, height_px=10, fx_px=200.0, position_mm=(0.0, -100.0, 0.0),
+                                   target_mm=(0.0, 0.0, 0.0))
+    centers = np.array([[0.0, -3.0, 0.0], [1.0, -2.8, 0.0]])
+    normals = centers / np.linalg.norm(centers, axis=1, keepdims=True)
+    patches = Patches(centers, normals, np.ones(2), np.ones(2), np.ones(2, bool))
+    ref = MonteCarloReference(Sphere((0.0, 0.0, 0.0), 3.0), cam, uniform_environment(1.0), patches, spp=4)
+    calls = [(np.array([1.0, 2.0]), np.array([0.05, 0.05]), 1.3, 5), (np.array([1.5, 2.0]), np.array([0.05, 0.1]),
+                                                                       1.3, 5)]
+    plain = [ref(*c) for c in calls]
+    log: list[str] = []
+
+    class Counting:
+        def __call__(self, *a: object, **kw: object) -> object:
+            log.append("one")
+            return render(*a, **kw)
+
+        def many(self, batch: list[tuple[object, ...]]) -> list[object]:
+            log.append(f"many {len(batch)}")
+            return [render(*b[:4], **b[4]) for b in batch]
+
+    with render_with(Counting()):
+        ref.prefetch(calls)
+        ahead = [ref(*c) for c in calls]
+        other = ref(calls[0][0], calls[0][1], 1.3, 6)
+    assert log == ["many 2", "one"]
+    for a, p in zip(ahead, plain, strict=True):
+        for x, y in zip(a, p, strict=True):
+            assert np.array_equal(x, y, equal_nan=True)
+    assert not np.array_equal(other[0], ahead[0][0], equal_nan=True)
+    with render_with(render):
+        ref.prefetch(calls)
+    assert ref._ahead == {}

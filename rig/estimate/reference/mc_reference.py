@@ -115,6 +115,8 @@ class MonteCarloReference(_SampleCountLevels):
     #: (H, W) pixels to render by Monte Carlo (None: the whole frame); the others stay dark
     #: (:class:`PixelSubsetCamera`): only for reductions that read no other pixel
     render_mask: NDArray[np.bool_] | None = None
+    #: images rendered ahead by :meth:`prefetch`, each for the one call with its arguments (not copied by replace)
+    _ahead: dict[tuple[Any, ...], Any] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if self.spp < 2:
@@ -129,18 +131,16 @@ class MonteCarloReference(_SampleCountLevels):
                  ) -> tuple[NDArray[np.float64], ...]:
         """(radiance, stderr) over all patches, and with ``derivatives`` also d radiance / d (log sigma_s',
         log sigma_a) (K, C, 2) and its stderr, from the same paths (:func:`simulators.mc.render`)."""
-        from simulators.mc import Medium, render
+        from simulators.mc import render
 
         from rig.feedback import numba_notice
         numba_notice()
 
-        ssp = np.atleast_1d(np.asarray(sigma_s_prime_per_mm, dtype=np.float64))
-        sa = np.atleast_1d(np.asarray(sigma_a_per_mm, dtype=np.float64))
-        media = [Medium.from_reduced(float(s), float(a), g=self.g, eta=float(eta)) for s, a in zip(ssp, sa)]
-        fn = _RENDER.get() or render
-        spp = int(self.current_spp)
-        img = fn(self.shape, media, self.camera, self.lights, spp=spp, seed=int(seed),
-                 derivatives=self.derivatives, fd_log_sigma_s=self.fd_log_sigma_s)
+        ssp, sa, media, kw = self._render_args(sigma_s_prime_per_mm, sigma_a_per_mm, eta, seed)
+        spp = kw["spp"]
+        img = self._ahead.pop(self._key(ssp, sa, eta, kw), None)
+        if img is None:
+            img = (_RENDER.get() or render)(self.shape, media, self.camera, self.lights, **kw)
         valid = img.mask if self.valid_px is None else img.mask & np.asarray(self.valid_px, dtype=bool)
         valid = np.broadcast_to(valid[..., None], img.radiance.shape)
         obs, sig = sample_at_points(img.radiance, img.stderr ** 2, valid, self.camera, self.patches.centers_mm,
@@ -157,6 +157,33 @@ class MonteCarloReference(_SampleCountLevels):
         d = np.stack([p[0] for p in parts], axis=2)
         d_se = np.stack([p[1] for p in parts], axis=2)
         return obs, sig, d, d_se
+
+    def _render_args(self, sigma_s_prime_per_mm: Any, sigma_a_per_mm: Any, eta: float, seed: int
+                     ) -> tuple[NDArray[np.float64], NDArray[np.float64], list[Any], dict[str, Any]]:
+        from simulators.mc import Medium
+
+        ssp = np.atleast_1d(np.asarray(sigma_s_prime_per_mm, dtype=np.float64))
+        sa = np.atleast_1d(np.asarray(sigma_a_per_mm, dtype=np.float64))
+        media = [Medium.from_reduced(float(s), float(a), g=self.g, eta=float(eta)) for s, a in zip(ssp, sa)]
+        return ssp, sa, media, dict(spp=int(self.current_spp), seed=int(seed), derivatives=self.derivatives,
+                                    fd_log_sigma_s=self.fd_log_sigma_s)
+
+    @staticmethod
+    def _key(ssp: NDArray[np.float64], sa: NDArray[np.float64], eta: float, kw: dict[str, Any]) -> tuple[Any, ...]:
+        return (ssp.tobytes(), sa.tobytes(), float(eta), kw["spp"], kw["seed"])
+
+    def prefetch(self, calls: list[tuple[Any, Any, float, int]]) -> None:
+        """Render the images of these calls (``(sigma_s', sigma_a, eta, seed)`` each, as :meth:`__call__` takes them,
+        at the current sample count) at once where the render function set by :func:`render_with` has a ``many``
+        method (``rig.estimate.batch.AutoChunks``: in parallel on a Dask cluster), each kept for the one later call
+        with the same arguments; else nothing (each call renders when made). A render is a function of its
+        arguments and seed: the numbers are the same either way."""
+        many = getattr(_RENDER.get(), "many", None)
+        if many is None or len(calls) < 2:
+            return
+        args = [self._render_args(*c) for c in calls]
+        imgs = many([(self.shape, media, self.camera, self.lights, kw) for _, _, media, kw in args])
+        self._ahead = {self._key(ssp, sa, c[2], kw): img for (ssp, sa, _, kw), c, img in zip(args, calls, imgs)}
 
 
 class PixelSubsetCamera:
