@@ -17,8 +17,9 @@ from one run:
 - the per-task costs behind docs/scale-out.md's predictions: median item seconds, Dask's overhead per task (200
   no-op tasks on the 2-worker cluster), the content hash of an item, and the load average before and after.
 
-Run: ``python benchmarks/batch.py [--spp N] [--iterations K] [--serial] [--json]`` (defaults 8 spp, 2 iterations:
-~3-6 min on 2 idle cores; the 8 scenes are rendered once into benchmarks/out/zoo, ~10 s after numba's cache).
+Run: ``python benchmarks/batch.py [--spp N] [--iterations K] [--pairs P] [--serial] [--json]`` (defaults 8 spp, 2
+iterations, 1 pair: ~3-6 min per pair on 2 idle cores; the 8 scenes and the 3 warm-up scenes are rendered once into
+benchmarks/out/zoo, ~10 s each after numba's cache).
 """
 from __future__ import annotations
 
@@ -259,8 +260,14 @@ def main(argv: list[str] | None = None) -> int:
                     help="split each reference render into chunks of this many rows across the workers (as "
                          "`rig estimate batch --render-chunk-rows`; 0: whole renders; default: the batch's automatic "
                          "chunks, none on 1 worker)")
+    ap.add_argument("--pairs", type=int, default=1,
+                    help="run 1 worker then 2 workers this many times, one pair after another (the machine's speed "
+                         "drifts over minutes: each ratio is taken within its pair); the speed-up printed is the "
+                         "median of the pairs' ratios, the other lines are the last pair's")
     ap.add_argument("--json", action="store_true")
     args = ap.parse_args(argv)
+    if args.pairs < 1:
+        ap.error(f"--pairs must be >= 1; got {args.pairs}")
     items = scenes(args.items)
     warm = warm_scenes(items)
     opts = BatchOptions(model="mc-table+reference", reference_spp=args.spp, reference_iterations=args.iterations,
@@ -271,10 +278,16 @@ def main(argv: list[str] | None = None) -> int:
     hash_s = (time.perf_counter() - t) / len(items)
     runs: dict[int, dict[str, Any]] = {}
     serial: dict[str, Any] | None = None
+    pairs: list[dict[str, Any]] = []
     with tempfile.TemporaryDirectory(prefix="batch-bench-") as tmp:
-        for w in (1, 2):
-            print(f"# {w} worker(s) ...", file=sys.stderr, flush=True)
-            runs[w] = run_workers(items, opts, w, Path(tmp) / f"w{w}", warm)
+        for k in range(args.pairs):
+            for w in (1, 2):
+                print(f"# pair {k + 1} of {args.pairs}: {w} worker(s) ...", file=sys.stderr, flush=True)
+                runs[w] = run_workers(items, opts, w, Path(tmp) / f"p{k}w{w}", warm)
+            pairs.append({"wall_1_s": runs[1]["wall_s"], "wall_2_s": runs[2]["wall_s"],
+                          "speedup": runs[1]["wall_s"] / runs[2]["wall_s"],
+                          "bit_identical": runs[1]["digests"] == runs[2]["digests"],
+                          "one_worker_cores_used": runs[1]["worker_cores_used"]})
         if args.serial:
             print("# serial (in process) ...", file=sys.stderr, flush=True)
             t = time.perf_counter()
@@ -282,12 +295,12 @@ def main(argv: list[str] | None = None) -> int:
             serial = {"wall_s": time.perf_counter() - t, "digests": {r["key"]: r["digest"] for r in rep.records}}
     one, two = runs[1], runs[2]
     doc_makespan = makespans(items, opts, one, two)
-    speedup = one["wall_s"] / two["wall_s"]
-    identical = one["digests"] == two["digests"]
+    speedup = statistics.median(p["speedup"] for p in pairs)
+    identical = all(p["bit_identical"] for p in pairs)
     item_s = list(one["item_seconds"].values())
     doc = {"items": len(items), "reference_spp": args.spp, "reference_iterations": args.iterations,
            "runs": {str(k): {kk: vv for kk, vv in v.items() if kk != "digests"} for k, v in runs.items()},
-           "speedup_2_vs_1": speedup, "target": 1.7, "bit_identical_1_vs_2": identical,
+           "speedup_2_vs_1": speedup, "pairs": pairs, "target": 1.7, "bit_identical_1_vs_2": identical,
            "bit_identical_serial": None if serial is None else serial["digests"] == one["digests"],
            "serial_wall_s": None if serial is None else serial["wall_s"],
            "median_item_s_1_worker": statistics.median(item_s), "content_hash_s_per_item": hash_s,
@@ -300,7 +313,7 @@ def main(argv: list[str] | None = None) -> int:
            "speedup_2_vs_1_idle_cores_estimate": (one["idle_cores_wall_estimate_s"] / two["idle_cores_wall_estimate_s"]
                                                   if one["idle_cores_wall_estimate_s"]
                                                   and two["idle_cores_wall_estimate_s"] else None),
-           "one_worker_is_one_core": one["worker_cores_used"] <= 1.05,
+           "one_worker_is_one_core": all(p["one_worker_cores_used"] <= 1.05 for p in pairs),
            "max_items_at_once_per_worker": max(_max_overlap(r["item_windows_unix_s"]) for r in runs.values())}
     if args.json:
         print(json.dumps(doc, indent=2))
@@ -316,12 +329,17 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{w:>7} {r['start_and_warm_s']:>12.1f} {r['wall_s']:>12.1f} {sum(r['item_seconds'].values()):>10.1f} "
               f"{cpu:>14.1f} {cpu / r['wall_s']:>9.2f} {r['worker_cpu_s']:>12.1f} {r['worker_cores_used']:>8.2f} "
               f"{lb:>16} {la:>16}")
-    print(f"speed-up 2 vs 1 workers: {speedup:.2f}x (target >= 1.7: {'met' if speedup >= 1.7 else 'NOT met'}); "
+    if len(pairs) > 1:
+        print("pairs (1 worker s / 2 workers s = ratio, bit-identical): " + "; ".join(
+            f"{p['wall_1_s']:.1f} / {p['wall_2_s']:.1f} = {p['speedup']:.2f}x {p['bit_identical']}" for p in pairs))
+    print(f"speed-up 2 vs 1 workers{f' (median of {len(pairs)} pairs)' if len(pairs) > 1 else ''}: {speedup:.2f}x "
+          f"(target >= 1.7: {'met' if speedup >= 1.7 else 'NOT met'}); "
           f"CPU-time speed-up (item CPU s per wall s, 2 vs 1): {doc['cpu_rate_ratio_2_vs_1']:.2f}x")
     chunking = "automatic" if args.render_chunk_rows is None else (f"{args.render_chunk_rows} rows"
                                                                    if args.render_chunk_rows > 0 else "none")
-    print(f"render chunks: {chunking}; 1-worker run on one core (worker CPU s / wall "
-          f"{one['worker_cores_used']:.2f} <= 1.05): {doc['one_worker_is_one_core']}; most items running at once on "
+    one_core = ", ".join(f"{p['one_worker_cores_used']:.2f}" for p in pairs)
+    print(f"render chunks: {chunking}; 1-worker runs on one core (worker CPU s / wall {one_core} <= 1.05): "
+          f"{doc['one_worker_is_one_core']}; most items running at once on "
           f"one worker: {doc['max_items_at_once_per_worker']}")
     est = doc["speedup_2_vs_1_idle_cores_estimate"]
     print("runnable fraction of each worker process (sampled every 50 ms): " + "; ".join(

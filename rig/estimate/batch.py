@@ -36,8 +36,10 @@ render of a scene file is split into chunks of rows, each a task on the cluster 
 keeps its random stream, so the numbers do not change. By default (None) on a cluster whose workers advertise the
 item resource (:func:`item_restrictions`) with two or more item slots: :data:`AUTO_CHUNKS_PER_SLOT` chunks per
 item slot, at most :data:`AUTO_MAX_CHUNKS`, at least :data:`AUTO_MIN_CHUNK_ROWS` rows each (so the long item that
-runs last spreads its renders over the workers the others left idle); else whole renders. 0: whole renders; > 0:
-chunks of that many rows. The gradient reference of capture folders and the session estimates are not chunked (one
+runs last spreads its renders over the workers the others left idle), only for renders expected to take at least
+:data:`AUTO_MIN_CHUNKED_RENDER_S` (:class:`AutoChunks`); independent renders a reference announces (the ridge line
+search's, :meth:`rig.estimate.reference.mc_reference.MonteCarloReference.prefetch`) go out as one wave of chunks;
+else whole renders. 0: whole renders; > 0: every render in chunks of that many rows. The gradient reference of capture folders and the session estimates are not chunked (one
 task per item).
 """
 from __future__ import annotations
