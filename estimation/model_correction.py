@@ -103,8 +103,7 @@ from .reference_correction import (SIGNAL_SE, SLOPE_SMOOTH_SPACINGS, _build, _Co
 from .reference_intervals import (_ASSUMED_SLOPE, FLAT_SPAN, MISFIT_CHI2, RESOLVED_OBJECTIVE, SECANT_SLOPE_BOUNDS,
                                   _cover, _derivative_noise_factor, _flat_likelihood, _huber_sum, _hull,
                                   _secant_slope, _widen)
-from .ridge_scan import (LINE_CHECK_SEED_OFFSETS, line_prefetcher, on_the_ridge, ridge_channels, ridge_line_search,
-                         scan_ridge)
+from .ridge_scan import line_check_kwargs, on_the_ridge, ridge_channels, ridge_line_search, scan_ridge
 from .single_image import (MAX_OK_INTERVAL_RATIO, Lights, Patches, SingleImageResult, _box_qp_2d,
                            estimate_single_image, map_parameters, parameter_status, patch_irradiance, predict_radiance,
                            sigma_a_verdict)
@@ -688,8 +687,7 @@ def _estimate_with_reference(observed_radiance: ArrayLike, patches: Patches, lig
         loop_point = np.where(gn_mode[:, None], theta_fit, _theta(acc_fit))  # what the loop would report
         theta_line, line_info = ridge_line_search(
             render_line, obs, lambda se_l, q_l: _metric(sig, se_l, q_l, model_error) * huber_scale, loop_point,
-            line_ch, render_check=[lambda th, o=o: render_line(th, seed + o) for o in LINE_CHECK_SEED_OFFSETS],
-            prefetch=line_prefetcher(refine_reference, eta_f, seed))
+            line_ch, **line_check_kwargs(render_line, refine_reference, eta_f, seed))
         line_info.update(spp=int(getattr(refine_reference, "current_spp", 0) or 0), coarse_spp=spp_now,
                          render_to_fit_sd_ratio=ratio_r, loop_sigma_s_prime_per_mm=np.exp(loop_point[:, 0]).tolist())
     if gn_mode.any() or line_ch.any():

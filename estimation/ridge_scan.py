@@ -38,8 +38,8 @@ from .single_image import SingleImageResult
 
 __all__ = ["MAX_DELTA_LOG_SA", "RIDGE_CORRELATION", "EDGE_FACTOR", "SCAN_RATIO", "SCAN_STEPS", "SCAN_EXTEND",
            "LINE_STEP_LOG", "LINE_EXTEND", "LINE_SIGNIFICANCE", "LINE_CHECK_SEED_OFFSETS", "line_gain_threshold",
-           "line_prefetcher", "profile_chi2", "profile_objective", "objective_gradient", "paired_gain_sd", "ridge_channels", "scan_ridge", "on_the_ridge",
-           "ridge_line_search"]
+           "line_check_kwargs", "profile_chi2", "profile_objective", "objective_gradient", "paired_gain_sd",
+           "ridge_channels", "scan_ridge", "on_the_ridge", "ridge_line_search"]
 
 Array = NDArray[np.float64]
 
@@ -94,16 +94,17 @@ def _render_points(render: Callable[[Array], tuple[Array, Array, Array | None, f
     return render(_points_theta(base, todo, point))
 
 
-def line_prefetcher(reference: Any, eta: float, seed: int) -> Callable[[list[tuple[Array, int]]], None] | None:
-    """:func:`ridge_line_search`'s ``prefetch`` for a reference renderer (called as ``reference(sigma_s', sigma_a,
-    eta, seed)``) that has a ``prefetch`` method taking such calls (rig's Monte Carlo references: renders at once on
-    a cluster); else None. r -> the seed of its render: ``seed``, or ``seed`` + LINE_CHECK_SEED_OFFSETS[r]."""
+def line_check_kwargs(render: Callable[[Array, int], tuple[Array, Array, Array | None, float]], reference: Any,
+                      eta: float, seed: int) -> dict[str, Any]:
+    """:func:`ridge_line_search`'s ``render_check`` (``render(theta, seed + o)`` for o in
+    :data:`LINE_CHECK_SEED_OFFSETS`) and ``prefetch``: for a ``reference`` renderer (called as ``reference(sigma_s',
+    sigma_a, eta, seed)`` by ``render``) with a ``prefetch`` method taking such calls (rig's Monte Carlo references:
+    renders at once on a cluster), else None."""
+    seeds = [seed + o for o in LINE_CHECK_SEED_OFFSETS]
     fetch = getattr(reference, "prefetch", None)
-    if fetch is None:
-        return None
-    return lambda pts: fetch([(np.exp(th[:, 0]), np.exp(th[:, 1]), eta, seed + (0 if r < 0 else
-                                                                                 LINE_CHECK_SEED_OFFSETS[r]))
-                              for th, r in pts])
+    return {"render_check": [lambda th, s=s: render(th, s) for s in seeds],
+            "prefetch": None if fetch is None else lambda pts: fetch([(np.exp(th[:, 0]), np.exp(th[:, 1]), eta,
+                                                                       seed if r < 0 else seeds[r]) for th, r in pts])}
 
 
 def profile_chi2(r: Array, d: Array, w: Array, max_delta: float = MAX_DELTA_LOG_SA) -> tuple[float, float, float]:
@@ -224,8 +225,9 @@ def ridge_line_search(render: Callable[[Array], tuple[Array, Array, Array | None
     Else it keeps ``theta``. ``prefetch`` (optional) is told, before each group of renders that do not depend on
     one another (the three first points; all the check renders), what they are: a list of (theta (C, 2), r), r = -1
     for ``render``, i for ``render_check[i]``, in the order they are then asked for; a renderer may render them at
-    once (rig.estimate.batch: in parallel on a Dask cluster). Returns the new point (``theta`` where ``channels`` is False or the gate says no) and a
-    record (per channel ``gain``, ``gain_check``, ``gain_sd``, ``gain_threshold_sd``, ``moved``).
+    once (rig.estimate.batch: in parallel on a Dask cluster). Returns the new point (``theta`` where ``channels`` is
+    False or the gate says no) and a record (per channel ``gain``, ``gain_check``, ``gain_sd``, ``gain_threshold_sd``,
+    ``moved``).
     """
     n_ch = theta.shape[0]
     rec: list[dict[int, tuple[float, float, float]]] = [{} for _ in range(n_ch)]

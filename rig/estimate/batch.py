@@ -39,33 +39,32 @@ item slot, at most :data:`AUTO_MAX_CHUNKS`, at least :data:`AUTO_MIN_CHUNK_ROWS`
 runs last spreads its renders over the workers the others left idle), only for renders expected to take at least
 :data:`AUTO_MIN_CHUNKED_RENDER_S` (:class:`AutoChunks`); independent renders a reference announces (the ridge line
 search's, :meth:`rig.estimate.reference.mc_reference.MonteCarloReference.prefetch`) go out as one wave of chunks;
-else whole renders. 0: whole renders; > 0: every render in chunks of that many rows. The gradient reference of capture folders and the session estimates are not chunked (one
-task per item).
+else whole renders. 0: whole renders; > 0: every render in chunks of that many rows. The gradient reference of
+capture folders and the session estimates are not chunked (one task per item).
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
 import re
 import shutil
 import sys
-import threading
 import time
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterable, Literal, Sequence
 
-import numpy as np
-
 from drivers.atomic import fsync_dir
 from drivers.errors import ConfigError
+from rig.estimate.batch_chunks import (AUTO_CHUNKS_PER_SLOT, AUTO_MAX_CHUNKS, AUTO_MIN_CHUNK_ROWS, AutoChunks,
+                                       chunked_render)
 from rig.files.provenance import json_default, write_json
 
 __all__ = ["BatchItem", "BatchOptions", "BatchReport", "classify_item", "content_sha256", "result_digest",
-           "expected_cost", "submission_order", "list_schedule_makespan", "run_item", "run_batch", "chunked_render",
-           "local_cluster", "item_slots", "item_restrictions", "as_completed_in_slots", "WORKER_ENV", "ITEM_RESOURCE",
+           "expected_cost", "submission_order", "list_schedule_makespan", "run_item", "run_batch", "local_cluster", "item_slots", "item_restrictions", "as_completed_in_slots", "WORKER_ENV", "ITEM_RESOURCE",
            "DONE_FILE", "RESULT_FILE"]
 
 ItemKind = Literal["session", "scene", "capture"]
@@ -90,25 +89,12 @@ _DIGEST_SUFFIXES = (".exr", ".tif", ".tiff", ".npy")
 #: folders inside an input folder that earlier estimates wrote (not inputs: left out of the content hash)
 _OUTPUT_DIRS = {"session": ("estimates", "report"), "capture": ("maps",)}
 _HASH_CHUNK = 1 << 20
-#: Dask priority of render-chunk tasks: above the items' (1..N, longest expected first), so the chunks of a started
-#: item run before further items start (an item waiting on its chunks has left its worker slot)
-CHUNK_PRIORITY = 1 << 30
 #: Dask worker resource held by each running item (:func:`local_cluster` gives every worker one per thread): an item
-#: waiting on its render chunks secedes from its thread slot (:func:`_leave_worker_slot`) but keeps its resources until
+#: waiting on its render chunks secedes from its thread slot (``batch_chunks._leave_worker_slot``) but keeps its
+#: resources until
 #: it ends (distributed's worker state machine releases them only when the task finishes, the scheduler alike), so the
 #: freed slot runs chunks, never a second item: a one-thread worker stays one core. Render chunks carry none.
 ITEM_RESOURCE = "item"
-#: automatic render chunks (``render_chunk_rows=None``): chunks per render per item slot of the cluster, at most
-#: AUTO_MAX_CHUNKS (on a big cluster every running item's renders would otherwise be split into thousands of tasks:
-#: each chunk task carries the scene and pays Dask's ~4-30 ms), each of at least AUTO_MIN_CHUNK_ROWS rows
-AUTO_CHUNKS_PER_SLOT, AUTO_MAX_CHUNKS, AUTO_MIN_CHUNK_ROWS = 1, 8, 8
-#: automatic chunks: a render expected to take less than AUTO_MIN_CHUNKED_RENDER_S runs whole in its item's task
-#: (:class:`AutoChunks`), expected = its pixel-samples x the item's last render's seconds per pixel-sample (before the
-#: first: AUTO_FIRST_S_PER_SAMPLE, a fast walk's, so only a big first render is split). Measured on the batch
-#: benchmark's zoo scenes: the short items' renders take 0.05-0.13 s (2 us per pixel-sample), their chunks then cost
-#: more in round trips and in waiting for a chunk behind another item's fit than they save; the long item's 64-spp
-#: renders take 2.3-3.0 s (6 us per pixel-sample)
-AUTO_MIN_CHUNKED_RENDER_S, AUTO_FIRST_S_PER_SAMPLE = 0.5, 1e-6
 #: threads hashing the items' inputs on the calling machine (SHA-256 ran at ~450 MB/s per core here)
 HASH_THREADS = 8
 
@@ -411,138 +397,6 @@ def list_schedule_makespan(seconds: Sequence[float], workers: int) -> float:
     return max(free)
 
 
-# ------------------------------------------------------------------------------------------------ render chunks
-def _stack_chunks(parts: Sequence[Any]) -> Any:
-    """One :class:`simulators.mc.MCImage` from the images of interleaved row chunks: part k holds the frame's rows
-    k, k + n, k + 2n, ... (n = len(parts); :func:`chunk_row_sets`)."""
-    from simulators.mc.render import MCImage
-
-    n = len(parts)
-    n_paths = [max(1, int(p.mask.sum())) for p in parts]
-    w = sum(n_paths)
-    h = sum(p.mask.shape[0] for p in parts)
-
-    def put(name: str) -> Any:
-        if getattr(parts[0], name) is None:
-            return None
-        first = getattr(parts[0], name)
-        out = np.empty((h,) + first.shape[1:], dtype=first.dtype)
-        for k, p in enumerate(parts):
-            out[k::n] = getattr(p, name)
-        return out
-
-    return MCImage(put("radiance"), put("stderr"), put("mask"), parts[0].spp, parts[0].seed,
-                   float(sum(p.seconds for p in parts)),
-                   float(sum(p.mean_collisions * n_p for p, n_p in zip(parts, n_paths)) / w),
-                   float(sum(p.truncated_fraction * n_p for p, n_p in zip(parts, n_paths)) / w),
-                   put("d_log_sigma"), put("d_log_sigma_stderr"))
-
-
-def chunk_row_sets(height_px: int, chunk_rows: int = 0, chunks: int = 0) -> list[tuple[int, int, int]]:
-    """The row sets of a render split into chunks, as :func:`simulators.mc.render` ``rows`` = (k, height_px, n):
-    chunk k takes the rows k, k + n, ... (interleaved, so every chunk gets an equal share of the object: measured on
-    the zoo's z19 at 64 spp, contiguous quarters of the frame cost 0.2 / 2.1 / 2.2 / 0.2 CPU s, the two middle
-    ones carrying the cube). n = ceil(height_px / chunk_rows) for ``chunk_rows`` > 0, else ``chunks`` capped so a
-    chunk keeps at least :data:`AUTO_MIN_CHUNK_ROWS` rows."""
-    h = int(height_px)
-    if chunk_rows > 0:
-        n = -(-h // int(chunk_rows))
-    elif chunks >= 1:
-        n = max(1, min(int(chunks), h // AUTO_MIN_CHUNK_ROWS))
-    else:
-        raise ValueError(f"chunk_rows or chunks must be >= 1; got {chunk_rows}, {chunks}")
-    n = max(1, min(n, h))
-    return [(k, h, n) for k in range(n)]
-
-
-def chunked_render(shape: Any, media: Any, camera: Any, lights: Any, *, chunk_rows: int = 0, chunks: int = 0,
-                   **kw: Any) -> Any:
-    """:func:`simulators.mc.render` split into interleaved row chunks (:func:`chunk_row_sets`: ``chunk_rows`` rows
-    each, or ``chunks`` chunks), each a task on the Dask cluster this task runs on (the calling task leaves its worker
-    slot, :func:`_leave_worker_slot`), put back in place. Every pixel keeps its random stream
-    (render's ``rows``), so the image is bit-identical to the whole render for any chunking and any number of
-    workers. Outside a Dask worker: the chunks one after another."""
-    return _renders_in_chunks([(shape, media, camera, lights, kw)], chunk_rows, chunks)[0]
-
-
-def _renders_in_chunks(calls: Sequence[tuple[Any, Any, Any, Any, dict[str, Any]]], chunk_rows: int = 0,
-                       chunks: int = 0) -> list[Any]:
-    """The images of several renders ``(shape, media, camera, lights, kw)``, each in row chunks (:func:`chunked_render`),
-    every chunk of every render submitted at once (on a Dask worker), then gathered."""
-    from simulators.mc import render
-
-    bounds = [chunk_row_sets(int(c[2].height_px), chunk_rows, chunks) for c in calls]
-    if all(len(b) == 1 for b in bounds):
-        return [render(*c[:4], **c[4]) for c in calls]
-    try:
-        from distributed import get_client, get_worker
-        get_worker()
-    except (ImportError, ValueError):
-        return [_stack_chunks([render(*c[:4], rows=r, **c[4]) for r in b]) for c, b in zip(calls, bounds)]
-    client = get_client()
-    _leave_worker_slot()
-    # above every item's priority (run_batch gives items 1..N): a started item's chunks run before new items start
-    futures = [[client.submit(render, *c[:4], rows=r, pure=False, priority=CHUNK_PRIORITY, **c[4]) for r in b]
-               for c, b in zip(calls, bounds)]
-    return [_stack_chunks(parts) for parts in client.gather(futures)]
-
-
-class AutoChunks:
-    """The automatic render chunks of one item (:func:`run_item`): each render as ``chunks`` chunks
-    (:func:`chunked_render`) when it is expected to take at least :data:`AUTO_MIN_CHUNKED_RENDER_S`, else whole in the
-    item's own task; expected from the item's last render (its seconds per pixel-sample x this render's pixel-samples:
-    height x width x spp x media). Which renders are split changes when they run, never their numbers (a render is
-    bit-identical whole or in chunks)."""
-
-    def __init__(self, chunks: int) -> None:
-        self.chunks = int(chunks)
-        self.s_per_sample = AUTO_FIRST_S_PER_SAMPLE
-
-    @staticmethod
-    def _samples(media: Any, camera: Any, kw: dict[str, Any]) -> float:
-        n_media = len(media) if isinstance(media, (list, tuple)) else 1
-        return float(camera.height_px) * float(camera.width_px) * float(kw.get("spp", 1)) * n_media
-
-    def __call__(self, shape: Any, media: Any, camera: Any, lights: Any, **kw: Any) -> Any:
-        from simulators.mc import render
-
-        samples = self._samples(media, camera, kw)
-        if self.chunks >= 2 and self.s_per_sample * samples >= AUTO_MIN_CHUNKED_RENDER_S:
-            img = chunked_render(shape, media, camera, lights, chunks=self.chunks, **kw)
-        else:
-            img = render(shape, media, camera, lights, **kw)
-        self.s_per_sample = float(img.seconds) / max(samples, 1.0)
-        return img
-
-    def many(self, calls: Sequence[tuple[Any, Any, Any, Any, dict[str, Any]]]) -> list[Any]:
-        """The images of independent renders ``(shape, media, camera, lights, kw)`` (a reference's ``prefetch``):
-        every chunk of every one submitted at once (one wave: the workers stay busy to the wave's end, not to each
-        render's end), the same images as one by one."""
-        if self.chunks < 2:
-            return [self(*c[:4], **c[4]) for c in calls]
-        imgs = _renders_in_chunks(calls, chunks=self.chunks)
-        self.s_per_sample = float(imgs[-1].seconds) / max(1.0, self._samples(calls[-1][1], calls[-1][2],
-                                                                              calls[-1][4]))
-        return imgs
-
-
-_SECEDED = threading.local()
-
-
-def _leave_worker_slot() -> None:
-    """Leave the worker's thread pool for the rest of this task, once (``distributed.secede``, never ``rejoin``):
-    the slot runs render chunks from then on, and the item's own work between its renders (its fits) runs beside
-    them on this thread. ``worker_client`` instead rejoins after every gather, which waits until the slot is free:
-    behind a chunk of another item (up to a chunk's duration, ~0.5-1 s at the zoo's 64 spp) after every render.
-    The item keeps its :data:`ITEM_RESOURCE` until it ends (no second item starts on the worker). A seceded thread
-    ends with its task, so the flag is per task."""
-    from distributed import secede
-
-    if not getattr(_SECEDED, "done", False):
-        secede()
-        _SECEDED.done = True
-
-
 # ------------------------------------------------------------------------------------------------ one item
 def _estimate(item: BatchItem, options: dict[str, Any], folder: Path) -> tuple[dict[str, Any], list[Path]]:
     """Run the item's estimator with outputs in ``folder``; (JSON result, output files that enter the digest)."""
@@ -601,9 +455,42 @@ def run_item(item: BatchItem, options: dict[str, Any], out_dir: str | os.PathLik
 
 
 # ------------------------------------------------------------------------------------------------ the batch
+_SPAWN = {"running": 0, "saved": {}}
+
+
+@functools.lru_cache(maxsize=1)
+def _environ_keeping_nanny() -> type:
+    """A :class:`distributed.Nanny` that puts the calling process's environment back after spawning its worker:
+    distributed's nanny sets ``distributed.nanny.pre-spawn-environ`` (:data:`NANNY_CONFIG`: :data:`WORKER_ENV`, and
+    PYTHONHASHSEED) in ``os.environ`` of the process that runs it -- the caller's, for a LocalCluster -- and leaves it
+    there, so after a batch the caller's numba and BLAS started with one thread (found by the test suite: a later
+    test of that process could not set NUMBA_NUM_THREADS to 2). Nannies start concurrently on one event loop: the
+    environment is saved when the first spawn begins and restored when the last one ends."""
+    from distributed import Nanny
+
+    class EnvironKeepingNanny(Nanny):
+        async def instantiate(self) -> Any:
+            if _SPAWN["running"] == 0:
+                _SPAWN["saved"] = {k: os.environ.get(k) for k in self.pre_spawn_env}
+            _SPAWN["running"] += 1
+            try:
+                return await super().instantiate()
+            finally:
+                _SPAWN["running"] -= 1
+                if _SPAWN["running"] == 0:
+                    for k, v in _SPAWN["saved"].items():
+                        if v is None:
+                            os.environ.pop(k, None)
+                        else:
+                            os.environ[k] = v
+
+    return EnvironKeepingNanny
+
+
 def local_cluster(workers: int, **kw: Any) -> Any:
     """A :class:`distributed.LocalCluster` of ``workers`` processes, one thread each, :data:`WORKER_ENV` set in
-    every worker (restarted workers too: the nanny spawns them with it), one :data:`ITEM_RESOURCE` per worker (one
+    every worker (restarted workers too: the nanny spawns them with it) and not left in this process
+    (:func:`_environ_keeping_nanny`), one :data:`ITEM_RESOURCE` per worker (one
     item at a time, its render chunks beside it), the scheduler's HTTP server (dashboard) on a free port unless
     ``dashboard_address`` is given: distributed starts it even for ``dashboard_address=None``, on the default port
     8787, and a second cluster on the machine (a batch beside another) then warned "Port 8787 is already in use"."""
@@ -616,6 +503,7 @@ def local_cluster(workers: int, **kw: Any) -> Any:
     kw.setdefault("dashboard_address", ":0")
     with dask.config.set(NANNY_CONFIG):  # read by each Nanny when it is made (here), kept for its restarts
         return LocalCluster(n_workers=int(workers), threads_per_worker=1, processes=True,
+                            worker_class=kw.pop("worker_class", _environ_keeping_nanny()),
                             env={**WORKER_ENV, **kw.pop("env", {})}, silence_logs=kw.pop("silence_logs", 40),
                             resources=kw.pop("resources", {ITEM_RESOURCE: 1}), **kw)
 
