@@ -26,10 +26,13 @@ re-runs the task elsewhere (Dask's ``distributed.scheduler.allowed-failures``, d
 folder is only committed by its marker, nothing half-written survives.
 
 Order: the items are submitted longest-expected-first (:func:`expected_cost`: the CPU seconds an earlier run of the
-item recorded in its marker, else pixels x channels x spp x renders of a scene reference, else the input's bytes), each with
-Dask ``priority`` by that rank, so no long item starts last and runs alone (list scheduling's longest-processing-time
-rule, Graham 1969: makespan within 4/3 - 1/(3W) of the optimum; :func:`list_schedule_makespan`). The order changes
-when items run, never their numbers.
+item recorded in its marker, else pixels x channels x spp x renders of a scene reference, else the input's bytes),
+each with Dask ``priority`` by that rank, so an item known to be long does not start last and run alone (list
+scheduling's longest-processing-time rule, Graham 1969: makespan within 4/3 - 1/(3W) of the optimum with the true
+costs; :func:`list_schedule_makespan`). On a first run the static estimate cannot see what the estimate will do (a
+scene whose reference loop ends in the ridge line search costs ~15x one that converges, at the same pixels and spp);
+render chunks then spread a late long item over the idle workers. The order changes when items run, never their
+numbers.
 
 Render chunks (``render_chunk_rows``, CLI ``--render-chunk-rows``): inside an item, each Monte Carlo reference
 render of a scene file is split into chunks of rows, each a task on the cluster (:func:`chunked_render`); every pixel
