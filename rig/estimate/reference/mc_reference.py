@@ -112,9 +112,6 @@ class MonteCarloReference(_SampleCountLevels):
     #: one whose noise matches the fit's
     spp_levels: tuple[int, ...] = ()
     level: int = -1   # index into spp_levels (-1: the last, the full count)
-    #: (H, W) pixels to render by Monte Carlo (None: the whole frame); the others stay dark
-    #: (:class:`PixelSubsetCamera`): only for reductions that read no other pixel
-    render_mask: NDArray[np.bool_] | None = None
     #: images rendered ahead by :meth:`prefetch`, each for the one call with its arguments (not copied by replace)
     _ahead: dict[tuple[Any, ...], Any] = field(default_factory=dict, init=False, repr=False, compare=False)
 
