@@ -35,12 +35,12 @@ render chunks then spread a late long item over the idle workers. The order chan
 numbers.
 
 Render chunks (``render_chunk_rows``, CLI ``--render-chunk-rows``): inside an item, each Monte Carlo reference
-render of a scene file is split into chunks of rows, each a task on the cluster (:func:`chunked_render`); every pixel
+render of a scene file is split into chunks of rows, each a task on the cluster (:func:`rig.estimate.batch_chunks.chunked_render`); every pixel
 keeps its random stream, so the numbers do not change. By default (None) on a cluster whose workers advertise the
 item resource (:func:`item_restrictions`) with two or more item slots: :data:`AUTO_CHUNKS_PER_SLOT` chunks per
 item slot, at most :data:`AUTO_MAX_CHUNKS`, at least :data:`AUTO_MIN_CHUNK_ROWS` rows each (so the long item that
 runs last spreads its renders over the workers the others left idle), only for renders expected to take at least
-:data:`AUTO_MIN_CHUNKED_RENDER_S` (:class:`AutoChunks`); independent renders a reference announces (the ridge line
+:data:`AUTO_MIN_CHUNKED_RENDER_S` (:class:`RenderChunks`); independent renders a reference announces (the ridge line
 search's, :meth:`rig.estimate.reference.mc_reference.MonteCarloReference.prefetch`) go out as one wave of chunks;
 else whole renders. 0: whole renders; > 0: every render in chunks of that many rows. The gradient reference of
 capture folders and the session estimates are not chunked (one task per item).
@@ -62,13 +62,13 @@ from typing import Any, Callable, Iterable, Literal, Sequence
 
 from drivers.atomic import fsync_dir
 from drivers.errors import ConfigError
-from rig.estimate.batch_chunks import (AUTO_CHUNKS_PER_SLOT, AUTO_MAX_CHUNKS, AUTO_MIN_CHUNK_ROWS, AutoChunks,
-                                       chunked_render)
+from rig.estimate.batch_chunks import AUTO_CHUNKS_PER_SLOT, AUTO_MAX_CHUNKS, AUTO_MIN_CHUNK_ROWS, RenderChunks
 from rig.files.provenance import json_default, write_json
 
 __all__ = ["BatchItem", "BatchOptions", "BatchReport", "classify_item", "content_sha256", "result_digest",
-           "expected_cost", "submission_order", "list_schedule_makespan", "run_item", "run_batch", "local_cluster", "item_slots", "item_restrictions", "as_completed_in_slots", "WORKER_ENV", "ITEM_RESOURCE",
-           "DONE_FILE", "RESULT_FILE"]
+           "expected_cost", "submission_order", "list_schedule_makespan", "run_item", "run_batch", "local_cluster",
+           "item_slots", "item_restrictions", "as_completed_in_slots", "WORKER_ENV", "ITEM_RESOURCE", "DONE_FILE",
+           "RESULT_FILE"]
 
 ItemKind = Literal["session", "scene", "capture"]
 DONE_FILE = "done.json"
@@ -427,10 +427,8 @@ def run_item(item: BatchItem, options: dict[str, Any], out_dir: str | os.PathLik
     """The task of one item (runs on a worker, or in this process for the serial run): clear ``OUT/<key>``, run
     the estimate, write ``result.json`` and then ``done.json`` atomically; return the marker's record.
     ``chunk_rows`` > 0: the scene references' Monte Carlo renders in chunks of that many rows across the cluster,
-    else with ``chunks`` > 0 in that many chunks (:func:`chunked_render`; the same numbers). Exceptions of the
-    estimate propagate (the batch reports the item failed; Dask does not retry them)."""
-    from functools import partial
-
+    else with ``chunks`` > 0 in that many chunks where a render is long (:class:`RenderChunks`; the same numbers).
+    Exceptions of the estimate propagate (the batch reports the item failed; Dask does not retry them)."""
     from rig.estimate.reference.mc_reference import render_with
     from rig.files.session import software_version
 
@@ -439,9 +437,7 @@ def run_item(item: BatchItem, options: dict[str, Any], out_dir: str | os.PathLik
     if folder.exists():     # a killed earlier attempt or an item whose inputs changed: start clean
         shutil.rmtree(folder)
     folder.mkdir(parents=True)
-    hook = (partial(chunked_render, chunk_rows=chunk_rows) if chunk_rows > 0 else AutoChunks(chunks) if chunks > 0
-            else None)
-    with render_with(hook):
+    with render_with(RenderChunks(chunks, chunk_rows) if chunk_rows > 0 or chunks > 0 else None):
         result, files = _estimate(item, options, folder)
     write_json(folder / RESULT_FILE, result)
     record = {"format": MARKER_FORMAT, "format_version": 1, "key": item.key, "kind": item.kind,

@@ -1,7 +1,7 @@
 """Render chunks of ``rig estimate batch`` (rig/estimate/batch.py, docs/scale-out.md section 2): a scene reference's
 Monte Carlo render split into interleaved row chunks, each a task on the Dask cluster the item runs on, put back in
 place bit-identically (every pixel keeps its random stream: :func:`simulators.mc.render`'s ``rows``); the automatic
-chunks of an item (:class:`AutoChunks`: only renders expected to take long, independent renders as one wave)."""
+chunks of an item (:class:`RenderChunks`: only renders expected to take long, independent renders as one wave)."""
 from __future__ import annotations
 
 import threading
@@ -10,7 +10,7 @@ from typing import Any, Sequence
 import numpy as np
 
 __all__ = ["CHUNK_PRIORITY", "AUTO_CHUNKS_PER_SLOT", "AUTO_MAX_CHUNKS", "AUTO_MIN_CHUNK_ROWS",
-           "AUTO_MIN_CHUNKED_RENDER_S", "AUTO_FIRST_S_PER_SAMPLE", "chunk_row_sets", "chunked_render", "AutoChunks"]
+           "AUTO_MIN_CHUNKED_RENDER_S", "AUTO_FIRST_S_PER_SAMPLE", "chunk_row_sets", "chunked_render", "RenderChunks"]
 
 #: Dask priority of render-chunk tasks: above the items' (1..N, longest expected first), so the chunks of a started
 #: item run before further items start (an item waiting on its chunks has left its worker slot)
@@ -20,7 +20,7 @@ CHUNK_PRIORITY = 1 << 30
 #: each chunk task carries the scene and pays Dask's ~4-30 ms), each of at least AUTO_MIN_CHUNK_ROWS rows
 AUTO_CHUNKS_PER_SLOT, AUTO_MAX_CHUNKS, AUTO_MIN_CHUNK_ROWS = 1, 8, 8
 #: automatic chunks: a render expected to take less than AUTO_MIN_CHUNKED_RENDER_S runs whole in its item's task
-#: (:class:`AutoChunks`), expected = its pixel-samples x the item's last render's seconds per pixel-sample (before the
+#: (:class:`RenderChunks`), expected = its pixel-samples x the item's last render's seconds per pixel-sample (before the
 #: first: AUTO_FIRST_S_PER_SAMPLE, a fast walk's, so only a big first render is split). Measured on the batch
 #: benchmark's zoo scenes: the short items' renders take 0.05-0.13 s (2 us per pixel-sample), their chunks then cost
 #: more in round trips and in waiting for a chunk behind another item's fit than they save; the long item's 64-spp
@@ -103,15 +103,16 @@ def _renders_in_chunks(calls: Sequence[tuple[Any, Any, Any, Any, dict[str, Any]]
     return [_stack_chunks(parts) for parts in client.gather(futures)]
 
 
-class AutoChunks:
-    """The automatic render chunks of one item (:func:`run_item`): each render as ``chunks`` chunks
-    (:func:`chunked_render`) when it is expected to take at least :data:`AUTO_MIN_CHUNKED_RENDER_S`, else whole in the
-    item's own task; expected from the item's last render (its seconds per pixel-sample x this render's pixel-samples:
-    height x width x spp x media). Which renders are split changes when they run, never their numbers (a render is
-    bit-identical whole or in chunks)."""
+class RenderChunks:
+    """The render chunks of one item (:func:`run_item`'s render function): with ``chunk_rows`` > 0 every render in
+    chunks of that many rows; else (automatic) each render as ``chunks`` chunks (:func:`chunked_render`) when it is
+    expected to take at least :data:`AUTO_MIN_CHUNKED_RENDER_S`, else whole in the item's own task; expected from the
+    item's last render (its seconds per pixel-sample x this render's pixel-samples: height x width x spp x media).
+    :meth:`many` renders independent renders as one wave. Which renders are split changes when they run, never their
+    numbers (a render is bit-identical whole or in chunks)."""
 
-    def __init__(self, chunks: int) -> None:
-        self.chunks = int(chunks)
+    def __init__(self, chunks: int = 0, chunk_rows: int = 0) -> None:
+        self.chunks, self.chunk_rows = int(chunks), int(chunk_rows)
         self.s_per_sample = AUTO_FIRST_S_PER_SAMPLE
 
     @staticmethod
@@ -119,26 +120,24 @@ class AutoChunks:
         n_media = len(media) if isinstance(media, (list, tuple)) else 1
         return float(camera.height_px) * float(camera.width_px) * float(kw.get("spp", 1)) * n_media
 
+    def _splits(self) -> bool:
+        return self.chunk_rows > 0 or self.chunks >= 2
+
     def __call__(self, shape: Any, media: Any, camera: Any, lights: Any, **kw: Any) -> Any:
+        long = self.chunk_rows > 0 or self.s_per_sample * self._samples(media, camera, kw) >= AUTO_MIN_CHUNKED_RENDER_S
+        return self.many([(shape, media, camera, lights, kw)], split=long)[0]
+
+    def many(self, calls: Sequence[tuple[Any, Any, Any, Any, dict[str, Any]]], split: bool = True) -> list[Any]:
+        """The images of renders ``(shape, media, camera, lights, kw)`` that do not depend on one another (a
+        reference's ``prefetch``): with ``split``, every chunk of every one submitted at once (one wave: the workers
+        stay busy to the wave's end, not to each render's end); the same images as one by one."""
         from simulators.mc import render
 
-        samples = self._samples(media, camera, kw)
-        if self.chunks >= 2 and self.s_per_sample * samples >= AUTO_MIN_CHUNKED_RENDER_S:
-            img = chunked_render(shape, media, camera, lights, chunks=self.chunks, **kw)
+        if split and self._splits():
+            imgs = _renders_in_chunks(calls, self.chunk_rows, self.chunks)
         else:
-            img = render(shape, media, camera, lights, **kw)
-        self.s_per_sample = float(img.seconds) / max(samples, 1.0)
-        return img
-
-    def many(self, calls: Sequence[tuple[Any, Any, Any, Any, dict[str, Any]]]) -> list[Any]:
-        """The images of independent renders ``(shape, media, camera, lights, kw)`` (a reference's ``prefetch``):
-        every chunk of every one submitted at once (one wave: the workers stay busy to the wave's end, not to each
-        render's end), the same images as one by one."""
-        if self.chunks < 2:
-            return [self(*c[:4], **c[4]) for c in calls]
-        imgs = _renders_in_chunks(calls, chunks=self.chunks)
-        self.s_per_sample = float(imgs[-1].seconds) / max(1.0, self._samples(calls[-1][1], calls[-1][2],
-                                                                              calls[-1][4]))
+            imgs = [render(*c[:4], **c[4]) for c in calls]
+        self.s_per_sample = float(imgs[-1].seconds) / max(1.0, self._samples(*(calls[-1][i] for i in (1, 2, 4))))
         return imgs
 
 

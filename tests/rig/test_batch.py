@@ -89,18 +89,29 @@ def test_serial_run_writes_each_item_and_its_marker(serial: Any) -> None:
     assert [i["status"] for i in listing["items"]] == ["done", "done"]
 
 
-def test_chunked_render_is_bit_identical_to_whole_render() -> None:
+def _small_scene(height_px: int = 16) -> tuple[tuple[Any, ...], dict[str, Any]]:
+    """A 12 px wide sphere under a point light and its render keywords (16 rows: two automatic chunks of >=
+    AUTO_MIN_CHUNK_ROWS)."""
     import numpy as np
 
     from estimation.camera import PinholeCamera
     from estimation.single_image import PointLights
-    from rig.estimate.batch_chunks import chunked_render
-    from simulators.mc import Medium, Sphere, render
+    from simulators.mc import Medium, Sphere
 
-    cam = PinholeCamera(12, 10, 20.0, 20.0, 6.0, 5.0, ((1, 0, 0), (0, 0, -1), (0, 1, 0)), (0.0, -100.0, 0.0))
+    cam = PinholeCamera(12, height_px, 20.0, 20.0, 6.0, height_px / 2, ((1, 0, 0), (0, 0, -1), (0, 1, 0)), (0.0, -100.0, 0.0))
     scene = (Sphere((0.0, 0.0, 0.0), 10.0), [Medium.from_reduced(1.0, 0.01, eta=1.3)] * 2, cam,
              PointLights(np.array([[0.0, -200.0, 100.0]]), np.array([1.0])))
-    kw = dict(spp=4, seed=3, derivatives=True, fd_log_sigma_s=0.1)
+    return scene, dict(spp=4, seed=3, derivatives=True, fd_log_sigma_s=0.1)
+
+
+def test_chunked_render_is_bit_identical_to_whole_render() -> None:
+    import numpy as np
+
+    from rig.estimate.batch_chunks import chunked_render
+    from simulators.mc import render
+
+    scene, kw = _small_scene(10)
+    cam = scene[2]
     whole = render(*scene, **kw)
     for rows in (3, 4):                          # 10 rows: uneven last chunks
         part = chunked_render(*scene, chunk_rows=rows, **kw)
@@ -117,33 +128,19 @@ def test_chunked_render_is_bit_identical_to_whole_render() -> None:
             render(*scene, rows=bad, **kw)
 
 
-def _small_scene() -> tuple[tuple[Any, ...], dict[str, Any]]:
-    """A 12 x 16 px sphere (16 rows: two automatic chunks of >= AUTO_MIN_CHUNK_ROWS) and its render keywords."""
-    import numpy as np
-
-    from estimation.camera import PinholeCamera
-    from estimation.single_image import PointLights
-    from simulators.mc import Medium, Sphere
-
-    cam = PinholeCamera(12, 16, 20.0, 20.0, 6.0, 8.0, ((1, 0, 0), (0, 0, -1), (0, 1, 0)), (0.0, -100.0, 0.0))
-    scene = (Sphere((0.0, 0.0, 0.0), 10.0), [Medium.from_reduced(1.0, 0.01, eta=1.3)] * 2, cam,
-             PointLights(np.array([[0.0, -200.0, 100.0]]), np.array([1.0])))
-    return scene, dict(spp=4, seed=3, derivatives=True, fd_log_sigma_s=0.1)
-
-
-def _auto_chunks_on_a_worker(s_per_sample: float, wave: bool) -> list[Any]:
-    """One render, or a wave of two (``many``), through AutoChunks(2) starting from ``s_per_sample``, as a task on a
+def _render_chunks_on_a_worker(s_per_sample: float, wave: bool) -> list[Any]:
+    """One render, or a wave of two (``many``), through RenderChunks(2) starting from ``s_per_sample``, as a task on a
     worker."""
-    from rig.estimate.batch_chunks import AutoChunks
+    from rig.estimate.batch_chunks import RenderChunks
 
     scene, kw = _small_scene()
-    auto = AutoChunks(2)
+    auto = RenderChunks(2)
     auto.s_per_sample = s_per_sample
     return auto.many([(*scene, kw), (*scene, {**kw, "seed": 4})]) if wave else [auto(*scene, **kw)]
 
 
-def test_auto_chunks_split_only_long_renders_and_a_wave_at_once(client: Any) -> None:
-    """AutoChunks (the batch's automatic chunks): a render expected below AUTO_MIN_CHUNKED_RENDER_S runs whole in
+def test_automatic_chunks_split_only_long_renders_and_a_wave_at_once(client: Any) -> None:
+    """RenderChunks (the batch's automatic chunks): a render expected below AUTO_MIN_CHUNKED_RENDER_S runs whole in
     the item's task (no chunk task), a longer one in 2 chunks; a wave (``many``, a reference's prefetch) in 2
     chunks per render whatever its expected time; every image bit-identical to the whole render."""
     import numpy as np
@@ -155,7 +152,7 @@ def test_auto_chunks_split_only_long_renders_and_a_wave_at_once(client: Any) -> 
     want = {False: [render(*scene, **kw)], True: [render(*scene, **kw), render(*scene, **{**kw, "seed": 4})]}
     for s_per_sample, wave, n_chunks in ((1e-9, False, 0), (1.0, False, 2), (1e-9, True, 4)):
         with get_task_stream(client) as ts:
-            imgs = client.submit(_auto_chunks_on_a_worker, s_per_sample, wave, pure=False).result()
+            imgs = client.submit(_render_chunks_on_a_worker, s_per_sample, wave, pure=False).result()
         assert sum(str(t["key"]).startswith("render-") for t in ts.data) == n_chunks, (s_per_sample, wave)
         for img, w in zip(imgs, want[wave], strict=True):
             for name in ("radiance", "stderr", "mask", "d_log_sigma", "d_log_sigma_stderr"):

@@ -172,7 +172,7 @@ class MonteCarloReference(_SampleCountLevels):
     def prefetch(self, calls: list[tuple[Any, Any, float, int]]) -> None:
         """Render the images of these calls (``(sigma_s', sigma_a, eta, seed)`` each, as :meth:`__call__` takes them,
         at the current sample count) at once where the render function set by :func:`render_with` has a ``many``
-        method (``rig.estimate.batch_chunks.AutoChunks``: in parallel on a Dask cluster), each kept for the one later call
+        method (``rig.estimate.batch_chunks.RenderChunks``: in parallel on a Dask cluster), each kept for the one later call
         with the same arguments; else nothing (each call renders when made). A render is a function of its
         arguments and seed: the numbers are the same either way."""
         many = getattr(_RENDER.get(), "many", None)
